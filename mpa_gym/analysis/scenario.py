@@ -1,0 +1,285 @@
+"""Simulation scenarios of Sec. 3.2 and 4.4: schema, YAML loading and validation.
+
+A scenario fixes the reference (Eq. 21), the feedforward inputs (Eq. 22 or a stiffness target for
+Eq. 25), the initial state, the *true* plant (overrides of the nominal model that the feedforward
+does not know about) and external disturbances. Named scenarios are the YAML files in
+``configs/scenarios/``; ``load_scenario`` also takes a path or a dict.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from mpa_gym.design.feedforward import (
+    P_MAX_DEFAULT,
+    ConstantStiffness,
+    FeedforwardDesign,
+    StiffnessEnvelope,
+)
+from mpa_gym.design.reference import MODES, FlexorPattern, Reference
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+
+SCENARIO_DIR_ENV = "MPA_GYM_SCENARIOS"
+
+
+class ScenarioError(ValueError):
+    """A scenario (file or dict) is malformed: the message names the key, the value and the range."""
+
+
+@dataclass(frozen=True)
+class InitialState:
+    x_m: float  # [m] X(0)
+    v_mps: float  # [m/s] V(0)
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """Feedforward inputs: an Eq. (22) pattern, a Table 1 mode, or an Eq. (25) stiffness target."""
+
+    pf_mean_bar: float = 0.5  # [bar] P'_f0 (Fig. 3: constant 0.5 bar)
+    pf_amp_bar: float = 0.0  # [bar] A_f
+    mode: int | None = None  # Table 1 preset; overrides pf_mean_bar / pf_amp_bar
+    stiffness: str | None = None  # "kmax" | "kmin" (Fig. 11) -> Eq. (25) design
+    stiffness_const_N_per_m: float | None = None  # constant k̂ -> Eq. (25) design
+    p_max_bar: float = P_MAX_DEFAULT / BAR  # [bar] upper pressure limit of the regulators
+
+
+@dataclass(frozen=True)
+class Plant:
+    """Overrides of the true plant; ``None`` keeps the nominal value. The design keeps nominal."""
+
+    extra_mass_kg: float = 0.0  # [kg] load at the hip (Sec. 4.4: +1 kg)
+    mass_kg: float | None = None  # [kg] true m instead of Tab. A2's 3.74 kg
+    gamma_Ns_per_m: float | None = None  # [N s/m] true γ instead of Tab. A1's 30 N s/m
+    pressure_lag_s: float = 0.0  # [s] first-order regulator time constant (0: ideal)
+
+
+@dataclass(frozen=True)
+class Impulse:
+    """A constant vertical force on the hip for a short time (Sec. 3.2: 20 N for 0.05 s)."""
+
+    t_s: float  # [s] start
+    force_N: float  # [N] positive upward
+    duration_s: float  # [s]
+    type: str = "impulse"
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    duration_s: float = 30.0
+    reference: Reference = field(default_factory=Reference)
+    inputs: Inputs = field(default_factory=Inputs)
+    initial_state: InitialState | None = None  # None: start on the reference, (X̂(0), V̂(0))
+    plant: Plant = field(default_factory=Plant)
+    disturbances: tuple[Impulse, ...] = ()
+    description: str = ""
+
+    def start_state(self) -> tuple[float, float]:
+        """(X(0), V(0)) [m, m/s]."""
+        if self.initial_state is None:
+            return (float(self.reference.position(0.0)), float(self.reference.velocity(0.0)))
+        return (self.initial_state.x_m, self.initial_state.v_mps)
+
+    def design(self, params: Params = DEFAULT_PARAMS) -> FeedforwardDesign:
+        """The feedforward, designed on the nominal model ``params`` (never on the plant)."""
+        inp, ref = self.inputs, self.reference
+        if inp.stiffness is not None:
+            return FeedforwardDesign(ref, stiffness=StiffnessEnvelope(inp.stiffness, ref,
+                                                                      params=params),
+                                     params=params)
+        if inp.stiffness_const_N_per_m is not None:
+            return FeedforwardDesign(ref, stiffness=ConstantStiffness(inp.stiffness_const_N_per_m),
+                                     params=params)
+        mean, amp = MODES[inp.mode] if inp.mode is not None else (inp.pf_mean_bar, inp.pf_amp_bar)
+        return FeedforwardDesign(ref, flexor=FlexorPattern(mean * BAR, amp * BAR, ref.period),
+                                 params=params)
+
+    def plant_params(self, params: Params = DEFAULT_PARAMS) -> Params:
+        """The true plant: the nominal model with this scenario's overrides."""
+        pl = self.plant
+        m = (pl.mass_kg if pl.mass_kg is not None else params.leg.m) + pl.extra_mass_kg
+        mpa = params.mpa
+        if pl.gamma_Ns_per_m is not None:
+            mpa = dataclasses.replace(mpa, gamma=pl.gamma_Ns_per_m)
+        return Params(mpa=mpa, leg=dataclasses.replace(params.leg, m=m))
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved scenario in the YAML schema (for writing beside results)."""
+        d: dict[str, Any] = {
+            "name": self.name,
+            "description": self.description,
+            "duration_s": self.duration_s,
+            "reference": {"x0_m": self.reference.x0, "amp_m": self.reference.amp,
+                          "period_s": self.reference.period},
+            "inputs": {k: v for k, v in dataclasses.asdict(self.inputs).items() if v is not None},
+            "plant": {k: v for k, v in dataclasses.asdict(self.plant).items() if v is not None},
+            "disturbances": [
+                {"type": d.type, "t_s": d.t_s, "force_N": d.force_N, "duration_s": d.duration_s}
+                for d in self.disturbances
+            ],
+        }
+        if self.initial_state is not None:
+            d["initial_state"] = dataclasses.asdict(self.initial_state)
+        return d
+
+
+# ----------------------------------------------------------------------------- loading
+_TOP_KEYS = {"name", "description", "duration_s", "initial_state", "reference", "inputs", "plant",
+             "disturbances"}
+
+
+def _section(d: Any, where: str, allowed: set[str], required: set[str] = frozenset()
+             ) -> dict[str, Any]:
+    if d is None:
+        d = {}
+    if not isinstance(d, dict):
+        raise ScenarioError(f"{where} must be a mapping, got {type(d).__name__}: {d!r}")
+    unknown = sorted(set(d) - allowed)
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
+    missing = sorted(required - set(d))
+    if missing:
+        raise ScenarioError(f"{where}: missing required key(s) {missing}")
+    return d
+
+
+def _num(d: dict[str, Any], key: str, where: str, default: Any = None, **rng: Any) -> Any:
+    if key not in d or d[key] is None:
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise ScenarioError(f"{where}.{key}={v!r} must be a number")
+    try:
+        return check_range(f"{where}.{key}", v, **rng)
+    except ValueError as e:
+        raise ScenarioError(str(e)) from None
+
+
+def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
+    """Build and validate a Scenario from the YAML schema of DESIGN.md."""
+    top = _section(d, f"scenario {name!r}", _TOP_KEYS, {"duration_s"})
+    w = str(top.get("name", name))
+    try:
+        ref_d = _section(top.get("reference"), f"{w}: reference", {"x0_m", "amp_m", "period_s"})
+        ref = Reference(
+            x0=_num(ref_d, "x0_m", "reference", 0.8, low=0.0, low_open=True, unit="m"),
+            amp=_num(ref_d, "amp_m", "reference", 0.02, low=0.0, unit="m"),
+            period=_num(ref_d, "period_s", "reference", 3.0, low=0.0, low_open=True, unit="s"),
+        )
+        ref.check_reachable(DEFAULT_PARAMS.leg)
+        inp_d = _section(top.get("inputs"), f"{w}: inputs",
+                         {f.name for f in dataclasses.fields(Inputs)})
+        mode = inp_d.get("mode")
+        if mode is not None and mode not in MODES:
+            raise ScenarioError(f"inputs.mode={mode!r} must be one of {sorted(MODES)}")
+        stiff = inp_d.get("stiffness")
+        if stiff is not None and stiff not in ("kmax", "kmin"):
+            raise ScenarioError(f"inputs.stiffness={stiff!r} must be 'kmax' or 'kmin'")
+        p_max = _num(inp_d, "p_max_bar", "inputs", P_MAX_DEFAULT / BAR, low=0.0, low_open=True,
+                     unit="bar")
+        chosen = [k for k in ("mode", "stiffness", "stiffness_const_N_per_m") if
+                  inp_d.get(k) is not None]
+        if len(chosen) > 1:
+            raise ScenarioError(f"inputs: give at most one of mode, stiffness, "
+                                f"stiffness_const_N_per_m (got {chosen})")
+        pf_mean = _num(inp_d, "pf_mean_bar", "inputs", 0.5, low=0.0, high=p_max, unit="bar")
+        inputs = Inputs(
+            pf_mean_bar=pf_mean,
+            pf_amp_bar=_num(inp_d, "pf_amp_bar", "inputs", 0.0, low=-pf_mean, high=pf_mean,
+                            unit="bar (Eq. 22: |A_f| <= P'_f0)"),
+            mode=mode, stiffness=stiff,
+            stiffness_const_N_per_m=_num(inp_d, "stiffness_const_N_per_m", "inputs", None,
+                                         unit="N/m"),
+            p_max_bar=p_max,
+        )
+        plant_d = _section(top.get("plant"), f"{w}: plant",
+                           {f.name for f in dataclasses.fields(Plant)})
+        plant = Plant(
+            extra_mass_kg=_num(plant_d, "extra_mass_kg", "plant", 0.0, low=0.0, high=50.0,
+                               unit="kg"),
+            mass_kg=_num(plant_d, "mass_kg", "plant", None, low=0.0, low_open=True, high=100.0,
+                         unit="kg"),
+            gamma_Ns_per_m=_num(plant_d, "gamma_Ns_per_m", "plant", None, low=0.0,
+                                low_open=True, unit="N s/m"),
+            pressure_lag_s=_num(plant_d, "pressure_lag_s", "plant", 0.0, low=0.0, high=1.0,
+                                unit="s"),
+        )
+        duration = _num(top, "duration_s", "scenario", None, low=0.0, low_open=True, high=3600.0,
+                        unit="s")
+        init = None
+        if top.get("initial_state") is not None:
+            init_d = _section(top["initial_state"], f"{w}: initial_state", {"x_m", "v_mps"},
+                              {"x_m", "v_mps"})
+            lo, hi = DEFAULT_PARAMS.leg.x_domain
+            init = InitialState(
+                _num(init_d, "x_m", "initial_state", low=lo, high=hi, low_open=True,
+                     high_open=True, unit="m"),
+                _num(init_d, "v_mps", "initial_state", low=-10.0, high=10.0, unit="m/s"))
+        dist_l = top.get("disturbances") or []
+        if not isinstance(dist_l, list):
+            raise ScenarioError(f"{w}: disturbances must be a list, got {dist_l!r}")
+        dists = []
+        for i, dd in enumerate(dist_l):
+            where = f"disturbances[{i}]"
+            dd = _section(dd, f"{w}: {where}", {"type", "t_s", "force_N", "duration_s"},
+                          {"type", "t_s", "force_N", "duration_s"})
+            if dd["type"] != "impulse":
+                raise ScenarioError(f"{where}.type={dd['type']!r}: allowed types are ['impulse']")
+            dists.append(Impulse(
+                t_s=_num(dd, "t_s", where, low=0.0, high=duration, unit="s"),
+                force_N=_num(dd, "force_N", where, low=-1e4, high=1e4, unit="N"),
+                duration_s=_num(dd, "duration_s", where, low=0.0, low_open=True, high=duration,
+                                unit="s")))
+        return Scenario(name=w, duration_s=duration, reference=ref, inputs=inputs,
+                        initial_state=init, plant=plant, disturbances=tuple(dists),
+                        description=str(top.get("description", "")))
+    except ScenarioError as e:
+        raise ScenarioError(f"scenario {w!r}: {e}") from None
+    except ValueError as e:  # a dataclass's own range check
+        raise ScenarioError(f"scenario {w!r}: {e}") from None
+
+
+def scenario_dirs() -> list[Path]:
+    """Where named scenarios are looked up: $MPA_GYM_SCENARIOS, then the repo's configs/."""
+    dirs = []
+    if os.environ.get(SCENARIO_DIR_ENV):
+        dirs.append(Path(os.environ[SCENARIO_DIR_ENV]))
+    dirs.append(Path(__file__).resolve().parents[2] / "configs" / "scenarios")
+    return dirs
+
+
+def scenario_names() -> list[str]:
+    """Names of the scenarios found in :func:`scenario_dirs`."""
+    return sorted({p.stem for d in scenario_dirs() if d.is_dir() for p in d.glob("*.yaml")})
+
+
+def load_scenario(spec: str | os.PathLike[str] | dict[str, Any] | Scenario) -> Scenario:
+    """A Scenario from a name in configs/scenarios, a YAML path, a dict or a Scenario."""
+    if isinstance(spec, Scenario):
+        return spec
+    if isinstance(spec, dict):
+        return scenario_from_dict(spec, str(spec.get("name", "custom")))
+    path = Path(spec)
+    if not path.suffix:
+        for d in scenario_dirs():
+            if (d / f"{spec}.yaml").is_file():
+                path = d / f"{spec}.yaml"
+                break
+        else:
+            raise ScenarioError(f"scenario={str(spec)!r} is neither a file nor one of the named "
+                                f"scenarios {scenario_names()}")
+    if not path.is_file():
+        raise ScenarioError(f"scenario file {str(path)!r} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ScenarioError(f"scenario file {str(path)!r} is not valid YAML: {e}") from None
+    return scenario_from_dict(data, data.get("name", path.stem) if isinstance(data, dict)
+                              else path.stem)

@@ -1,0 +1,94 @@
+"""McKibben pneumatic actuator (MPA) force, Eq. (1)-(4) and the Appendix.
+
+Symbols (Appendix): L actuator length, L0 resting length, D0 resting diameter, b braid length,
+n number of fibre turns, C1/C2 Mooney-Rivlin constants, V_b interior (bladder) volume,
+V_r rubber volume, W strain-energy density, γ viscosity. Every function takes floats or numpy
+arrays (broadcast) of L, P' and v.
+
+Documented assumption (DESIGN.md): the braided-cylinder geometry
+``D(L) = sqrt(b² − L²) / (n π)`` and ``V_b(L) = π D² L / 4 = L (b² − L²) / (4 π n²)``.
+The stretches used in W are λ1 = L / L0 (axial), λ2 = D(L) / D0 (hoop), λ3 = 1 / (λ1 λ2)
+(incompressible rubber); the Appendix's dW/dL is exactly the L-derivative of this W.
+"""
+
+from __future__ import annotations
+
+import math
+
+from mpa_gym.model.params import MPAParams
+from mpa_gym.model.xp import Array, sqrt
+
+PI = math.pi
+
+
+def braid_diameter(L: Array, p: MPAParams) -> Array:
+    """[m] D(L) = sqrt(b² − L²) / (n π) (assumption, DESIGN.md)."""
+    return sqrt(p.b**2 - L**2) / (p.n * PI)
+
+
+def bladder_volume(L: Array, p: MPAParams) -> Array:
+    """[m^3] V_b(L) = L (b² − L²) / (4 π n²) (assumption, DESIGN.md)."""
+    return L * (p.b**2 - L**2) / (4.0 * PI * p.n**2)
+
+
+def dVb_dL(L: Array, p: MPAParams) -> Array:
+    """[m^2] dV_b/dL = (b² − 3 L²) / (4 π n²); negative for L > b/√3."""
+    return (p.b**2 - 3.0 * L**2) / (4.0 * PI * p.n**2)
+
+
+def d2Vb_dL2(L: Array, p: MPAParams) -> Array:
+    """[m] d²V_b/dL² = −6 L / (4 π n²)."""
+    return -6.0 * L / (4.0 * PI * p.n**2)
+
+
+def strain_energy_density(L: Array, p: MPAParams) -> Array:
+    """[Pa] Mooney-Rivlin W = C1 (I1 − 3) + C2 (I2 − 3) with the stretches of the module doc."""
+    l1 = L / p.L0
+    l2 = braid_diameter(L, p) / p.D0
+    l3 = 1.0 / (l1 * l2)
+    i1 = l1**2 + l2**2 + l3**2
+    i2 = l1**-2 + l2**-2 + l3**-2
+    return p.C1 * (i1 - 3.0) + p.C2 * (i2 - 3.0)
+
+
+def dW_dL(L: Array, p: MPAParams) -> Array:
+    """[Pa/m] dW/dL exactly as printed in the Appendix."""
+    B = p.b**2
+    K = p.D0**2 * p.n**2 * PI**2  # D0² n² π²
+    L02 = p.L0**2
+    s = B - L**2
+    c1 = 2.0 * L / L02 - 2.0 * L / K - 2.0 * L02 * K * (B - 2.0 * L**2) / (L**3 * s**2)
+    c2 = -2.0 * L02 / L**3 + 2.0 * K * L / s**2 + (2.0 * L * B - 4.0 * L**3) / (L02 * K)
+    return p.C1 * c1 + p.C2 * c2
+
+
+def d2W_dL2(L: Array, p: MPAParams) -> Array:
+    """[Pa/m^2] d²W/dL², the L-derivative of the Appendix's dW/dL (needed by Eq. 23)."""
+    B = p.b**2
+    K = p.D0**2 * p.n**2 * PI**2
+    L02 = p.L0**2
+    s = B - L**2
+    c1 = (
+        2.0 / L02
+        - 2.0 / K
+        - 2.0 * L02 * K * (-3.0 * B**2 + 9.0 * B * L**2 - 10.0 * L**4) / (L**4 * s**3)
+    )
+    c2 = 6.0 * L02 / L**4 + 2.0 * K * (B + 3.0 * L**2) / s**3 + (2.0 * B - 12.0 * L**2) / (L02 * K)
+    return p.C1 * c1 + p.C2 * c2
+
+
+def force(P: Array, L: Array, v: Array, p: MPAParams) -> Array:
+    """[N] MPA tension f(P', L, v) = −P' dV_b/dL + V_r dW/dL − γ v, Eq. (2) with Eq. (4).
+
+    Parameters
+    ----------
+    P : gauge pressure P' [Pa].
+    L : actuator length [m].
+    v : contractile velocity [m/s], positive when the MPA shortens.
+    """
+    return -P * dVb_dL(L, p) + p.Vr * dW_dL(L, p) - p.gamma * v
+
+
+def dforce_dL(P: Array, L: Array, p: MPAParams) -> Array:
+    """[N/m] ∂f/∂L at fixed P' and v: −P' d²V_b/dL² + V_r d²W/dL²."""
+    return -P * d2Vb_dL2(L, p) + p.Vr * d2W_dL2(L, p)

@@ -1,0 +1,154 @@
+"""Model parameters: Tables A1 and A2 of the paper plus the documented assumptions of DESIGN.md.
+
+All quantities are SI (m, s, N, Pa, kg). Pressures are gauge pressures (the paper's P').
+Variants are made with :func:`dataclasses.replace`; no default is repeated anywhere else.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from functools import cached_property
+
+BAR = 1.0e5  # [Pa] one bar; pressures are shown in bar at the edges only
+
+
+def check_range(
+    name: str,
+    value: float,
+    low: float = -math.inf,
+    high: float = math.inf,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+    unit: str = "",
+) -> float:
+    """Return ``float(value)`` or raise ``ValueError`` naming the field, the value and the range.
+
+    ``low_open`` / ``high_open`` make the corresponding bound strict.
+    """
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}={value!r} is not a number") from None
+    left = "(" if low_open else "["
+    right = ")" if high_open else "]"
+    unit_s = f" {unit}" if unit else ""
+    allowed = f"{left}{low:g}, {high:g}{right}{unit_s}"
+    if not math.isfinite(x):
+        raise ValueError(f"{name}={x!r} must be finite; allowed range {allowed}")
+    too_low = x <= low if low_open else x < low
+    too_high = x >= high if high_open else x > high
+    if too_low or too_high:
+        raise ValueError(f"{name}={x:g}{unit_s} is outside the allowed range {allowed}")
+    return x
+
+
+def _positive(obj: object, *names: str, units: dict[str, str]) -> None:
+    for name in names:
+        check_range(
+            f"{type(obj).__name__}.{name}", getattr(obj, name), 0.0, low_open=True,
+            unit=units.get(name, ""),
+        )
+
+
+@dataclass(frozen=True)
+class MPAParams:
+    """McKibben actuator model of Eq. (1)-(4) and the Appendix; one set shared by both MPAs."""
+
+    C1: float = 192.0e3  # [Pa] C_1, Mooney-Rivlin constant, Tab. A1
+    C2: float = 1.3e3  # [Pa] C_2, Mooney-Rivlin constant, Tab. A1
+    D0: float = 15.0e-3  # [m] D_0, resting-state diameter, Tab. A1
+    b: float = 148.0e-3  # [m] b, braid (fibre) length, Tab. A1
+    n: float = 1.68  # [-] n, number of turns of a fibre, Tab. A1
+    gamma: float = 30.0  # [N s/m] γ = γ_e = γ_f, viscosity coefficient, Eq. (4), Tab. A1
+    L0: float = 125.0e-3  # [m] L_0 = L_e0 = L_f0, resting length, Tab. A1/A2
+    thickness: float = 1.0e-3  # [m] t, bladder wall thickness (assumption, DESIGN.md)
+
+    def __post_init__(self) -> None:
+        units = {"C1": "Pa", "C2": "Pa", "D0": "m", "b": "m", "gamma": "N s/m", "L0": "m",
+                 "thickness": "m"}
+        for f in fields(self):
+            check_range(f"MPAParams.{f.name}", getattr(self, f.name))
+        _positive(self, "C1", "D0", "b", "n", "gamma", "L0", "thickness", units=units)
+        check_range("MPAParams.C2", self.C2, 0.0, unit="Pa")
+        # Pressure makes tension only while dV_b/dL < 0, i.e. L > b/√3 (braid angle < 54.7°).
+        check_range("MPAParams.L0", self.L0, self.b / math.sqrt(3.0), self.b,
+                    low_open=True, high_open=True, unit="m")
+        check_range("MPAParams.thickness", self.thickness, 0.0, self.D0 / 2.0,
+                    low_open=True, high_open=True, unit="m")
+
+    @cached_property
+    def Vr(self) -> float:
+        """[m^3] V_r, rubber volume π L0 (r_o² − (r_o − t)²), r_o = D0/2 (assumption, DESIGN.md)."""
+        ro = 0.5 * self.D0
+        return math.pi * self.L0 * (ro**2 - (ro - self.thickness) ** 2)
+
+    @property
+    def length_domain(self) -> tuple[float, float]:
+        """[m] open interval (b/√3, b) of MPA lengths where the model is physical.
+
+        At L = b the braid diameter vanishes; below b/√3 the braid angle passes 54.7° and
+        pressure no longer produces tension (dV_b/dL changes sign).
+        """
+        return (self.b / math.sqrt(3.0), self.b)
+
+
+@dataclass(frozen=True)
+class LegParams:
+    """Knee geometry and hip mass of Fig. 2, Tab. A2."""
+
+    Lo: float = 450.0e-3  # [m] L_o, femur length (knee to hip), Tab. A2
+    Lu: float = 425.0e-3  # [m] L_u, tibia length, Tab. A2
+    L1: float = 200.0e-3  # [m] L_1, knee to flexor attachment on the upper link, Tab. A2
+    L2: float = 100.0e-3  # [m] L_2, knee to flexor attachment on the lower link, Tab. A2
+    r: float = 40.0e-3  # [m] r, knee pulley radius, Tab. A2
+    m: float = 3.74  # [kg] m, representative mass of leg and hip, Tab. A2
+    g: float = 9.86  # [m/s^2] g, gravitational acceleration, Tab. A2
+    x_rest: float = 0.8  # [m] hip height where L_e = L_f = L0: β0 = β(x_rest) (assumption)
+
+    def __post_init__(self) -> None:
+        units = {k: "m" for k in ("Lo", "Lu", "L1", "L2", "r", "x_rest")}
+        units.update(m="kg", g="m/s^2")
+        for f in fields(self):
+            check_range(f"LegParams.{f.name}", getattr(self, f.name))
+        _positive(self, "Lo", "Lu", "L1", "L2", "r", "m", "g", "x_rest", units=units)
+        lo, hi = self.x_domain
+        check_range("LegParams.x_rest", self.x_rest, lo, hi, low_open=True, high_open=True,
+                    unit="m")
+
+    @cached_property
+    def beta0(self) -> float:
+        """[rad] β0 = β(x_rest), Eq. (9) (assumption, DESIGN.md)."""
+        from mpa_gym.model.leg import knee_angle
+
+        return float(knee_angle(self.x_rest, self))
+
+    @cached_property
+    def l_mf0(self) -> float:
+        """[m] l_Mf0 = l_Mf(β0), Eq. (10) (assumption, DESIGN.md)."""
+        from mpa_gym.model.leg import flexor_path
+
+        return float(flexor_path(self.x_rest, self))
+
+    @property
+    def x_domain(self) -> tuple[float, float]:
+        """[m] open interval (|L_o − L_u|, L_o + L_u) of hip heights the knee can reach."""
+        return (abs(self.Lo - self.Lu), self.Lo + self.Lu)
+
+
+@dataclass(frozen=True)
+class Params:
+    """Everything the physics needs: the MPA model (both actuators) and the leg."""
+
+    mpa: MPAParams = field(default_factory=MPAParams)
+    leg: LegParams = field(default_factory=LegParams)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mpa, MPAParams):
+            raise TypeError(f"Params.mpa must be MPAParams, got {type(self.mpa).__name__}")
+        if not isinstance(self.leg, LegParams):
+            raise TypeError(f"Params.leg must be LegParams, got {type(self.leg).__name__}")
+
+
+DEFAULT_PARAMS = Params()

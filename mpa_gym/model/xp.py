@@ -1,0 +1,35 @@
+"""Scalar-or-array helpers: the physics kernels run on Python floats (fast, one leg) and on numpy
+arrays (a batch of legs) through the same code."""
+
+from __future__ import annotations
+
+import math
+from typing import TypeAlias
+
+import numpy as np
+
+Array: TypeAlias = "float | np.ndarray"
+
+
+def sqrt(x: Array) -> Array:
+    """√x; NaN (never an exception) outside the domain, for floats as for arrays."""
+    if isinstance(x, float):
+        return math.sqrt(x) if x >= 0.0 else math.nan
+    return np.sqrt(x)
+
+
+def acos(x: Array) -> Array:
+    """arccos x; NaN (never an exception) outside [−1, 1], for floats as for arrays."""
+    if isinstance(x, float):
+        return math.acos(x) if -1.0 <= x <= 1.0 else math.nan
+    return np.arccos(x)
+
+
+def as_real(x: object, name: str = "value") -> Array:
+    """A float stays a float; anything else becomes a float ndarray."""
+    if isinstance(x, float):
+        return x
+    if isinstance(x, int | np.integer):
+        return float(x)
+    arr = np.asarray(x, dtype=float)
+    return float(arr) if arr.ndim == 0 else arr
