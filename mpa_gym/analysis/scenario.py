@@ -29,7 +29,7 @@ SCENARIO_DIR_ENV = "MPA_GYM_SCENARIOS"
 
 
 class ScenarioError(ValueError):
-    """A scenario (file or dict) is malformed: the message names the key, the value and the range."""
+    """A malformed scenario (file or dict); the message names the key, the value and the range."""
 
 
 @dataclass(frozen=True)
@@ -143,7 +143,8 @@ def _section(d: Any, where: str, allowed: set[str], required: set[str] = frozens
         raise ScenarioError(f"{where} must be a mapping, got {type(d).__name__}: {d!r}")
     unknown = sorted(set(d) - allowed)
     if unknown:
-        raise ScenarioError(f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
+        raise ScenarioError(
+            f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
     missing = sorted(required - set(d))
     if missing:
         raise ScenarioError(f"{where}: missing required key(s) {missing}")
@@ -193,7 +194,7 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
         inputs = Inputs(
             pf_mean_bar=pf_mean,
             pf_amp_bar=_num(inp_d, "pf_amp_bar", "inputs", 0.0, low=-pf_mean, high=pf_mean,
-                            unit="bar (Eq. 22: |A_f| <= P'_f0)"),
+                            unit="bar", note="Eq. 22: |A_f| <= P'_f0"),
             mode=mode, stiffness=stiff,
             stiffness_const_N_per_m=_num(inp_d, "stiffness_const_N_per_m", "inputs", None,
                                          unit="N/m"),

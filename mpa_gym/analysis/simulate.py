@@ -76,7 +76,7 @@ class SimulationResult:
 
 
 def _time_grid(duration: float, dt: float, breakpoints: list[float]) -> np.ndarray:
-    n = int(round(duration / dt))
+    n = round(duration / dt)
     base = np.linspace(0.0, n * dt, n + 1)
     if abs(n * dt - duration) > 1e-9:
         base = np.append(base[base < duration], duration)

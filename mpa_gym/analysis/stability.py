@@ -74,7 +74,7 @@ class StabilityReport:
 
     @property
     def stable(self) -> bool:
-        """Asymptotically stable periodic motion: every Floquet multiplier inside the unit circle."""
+        """Asymptotically stable periodic motion: all Floquet multipliers inside the unit circle."""
         return bool(np.all(np.abs(self.multipliers) < 1.0))
 
     @property
@@ -86,3 +86,42 @@ def analyze(design: FeedforwardDesign) -> StabilityReport:
     """Theorem 1's integral and the Floquet multipliers of the design's periodic motion."""
     phi = monodromy_matrix(design)
     return StabilityReport(theorem1_integral(design), np.linalg.eigvals(phi), phi)
+
+
+def linear_steady_state_error(design: FeedforwardDesign, plant: Params, t: ArrayLike,
+                              rtol: float = 1e-11, atol: float = 1e-14) -> np.ndarray:
+    """[m] Periodic tracking error X − X̂ predicted by linearisation when the plant differs.
+
+    The feedforward is designed on ``design.params``; on a plant ``plant`` (other m, γ, C1, …)
+    the reference leaves a residual acceleration δa(t) = F_p(X̂, V̂, P')/m_p − g − dV̂/dt. The
+    error z = (X̃, Ṽ) then obeys z' = A_p(t) z + (0, δa(t)) to first order, with A_p the plant's
+    Eq. (17) matrix along the reference. Its T-periodic solution is z(0) = (I − Φ_p)⁻¹ z_p(T),
+    z_p the response from rest; it exists because the multipliers lie inside the unit circle.
+    Returns X̃ at the times ``t`` (taken modulo T).
+    """
+    r = design.reference
+    m = plant.leg.m
+
+    def rhs(tt: float, z: np.ndarray) -> np.ndarray:
+        x, v, a = r.position(tt), r.velocity(tt), r.acceleration(tt)
+        pe, pf = design.pressures(tt)
+        ft = force_terms(float(x), float(v), float(pe), float(pf), plant)
+        da = ft.F / m - plant.leg.g - float(a)
+        a1, a2 = ft.dF_dV / m, ft.dF_dX / m
+        # columns: particular response (z), then Φ (2x2) for the homogeneous part
+        zz = z.reshape(3, 2)
+        out = np.empty_like(zz)
+        for i in range(3):
+            out[i] = (zz[i, 1], a2 * zz[i, 0] + a1 * zz[i, 1] + (da if i == 0 else 0.0))
+        return out.ravel()
+
+    T = r.period
+    z0 = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 1.0])
+    sol = solve_ivp(rhs, (0.0, T), z0, method="DOP853", rtol=rtol, atol=atol)
+    end = sol.y[:, -1].reshape(3, 2)
+    phi = end[1:].T  # columns are the responses to unit X̃ and Ṽ
+    start = np.linalg.solve(np.eye(2) - phi, end[0])
+    tq, inverse = np.unique(np.mod(np.asarray(t, dtype=float), T), return_inverse=True)
+    per = solve_ivp(rhs, (0.0, T), np.concatenate([start, [1.0, 0.0, 0.0, 1.0]]),
+                    method="DOP853", rtol=rtol, atol=atol, t_eval=tq)
+    return per.y[0][inverse].reshape(np.shape(t))

@@ -1,4 +1,4 @@
-"""Feedforward pressure design (Eq. 16), joint stiffness (Eq. 23) and stiffness-based design (Eq. 25).
+"""Feedforward design (Eq. 16), joint stiffness (Eq. 23) and stiffness-based design (Eq. 25).
 
 A design is a pair of time functions (P'_e(t), P'_f(t)) that makes the reference (X̂, V̂) of Eq. (21)
 a solution of Eq. (15) for the *design* model. P'_f comes either from a pattern (Eq. 22) or from a
@@ -8,7 +8,6 @@ Eq. (25) is solved in closed form.
 """
 
 from __future__ import annotations
-
 
 from dataclasses import dataclass, field
 from typing import NamedTuple, Protocol
@@ -234,7 +233,8 @@ class Violation:
         return (
             f"{self.quantity} = {self.value * scale:.4g} {unit} at t = {self.t_worst:.3f} s "
             f"(outside [{self.low * scale:.4g}, {self.high * scale:.4g}] {unit} by "
-            f"{self.amount * scale:.4g} {unit}, from t = {self.t_start:.3f} s to {self.t_end:.3f} s)"
+            f"{self.amount * scale:.4g} {unit}, "
+            f"from t = {self.t_start:.3f} s to {self.t_end:.3f} s)"
         )
 
 

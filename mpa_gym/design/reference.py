@@ -61,7 +61,7 @@ class FlexorPattern:
     def __post_init__(self) -> None:
         check_range("inputs.pf_mean_bar", self.mean / BAR, 0.0, unit="bar")
         check_range("inputs.pf_amp_bar", self.amp / BAR, -self.mean / BAR, self.mean / BAR,
-                    unit="bar (Eq. 22: |A_f| <= P'_f0)")
+                    unit="bar", note="Eq. 22: |A_f| <= P'_f0")
         check_range("inputs.period_s", self.period, 0.0, low_open=True, unit="s")
 
     def __call__(self, t: ArrayLike) -> np.ndarray:

@@ -7,6 +7,7 @@ Every function broadcasts, so the same code steps one leg or an array of legs.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -141,7 +142,7 @@ def integrate_reference(
     edges = [t0, *sorted(b for b in breakpoints if t0 < b < t1), t1]
     y = np.asarray(y0, dtype=float)
     out = np.empty((t_eval.size, y.size))
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
+    for a, b in itertools.pairwise(edges):
         last = b == t1
         mask = (t_eval >= a) & ((t_eval <= b) if last else (t_eval < b))
         te = t_eval[mask]

@@ -1,7 +1,7 @@
 """Knee geometry and force transmission of the leg, Eq. (8)-(14).
 
 X is the hip height [m], V = dX/dt. β(X) is the knee angle (Eq. 9); the extensor wraps the knee
-pulley of radius r (Eq. 11) and the flexor spans the chord l_Mf between its attachments (Eq. 10, 12).
+pulley of radius r (Eq. 11); the flexor spans the chord l_Mf between its attachments (Eq. 10, 12).
 G_e = −dL_e/dX and G_f = dL_f/dX (Eq. 8) map actuator tensions to the vertical ground force.
 Every function takes a float or a numpy array (broadcast) of X.
 """

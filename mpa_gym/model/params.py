@@ -22,10 +22,12 @@ def check_range(
     low_open: bool = False,
     high_open: bool = False,
     unit: str = "",
+    note: str = "",
 ) -> float:
     """Return ``float(value)`` or raise ``ValueError`` naming the field, the value and the range.
 
-    ``low_open`` / ``high_open`` make the corresponding bound strict.
+    ``low_open`` / ``high_open`` make the corresponding bound strict; ``note`` says why the
+    range is what it is (e.g. the equation that imposes it).
     """
     try:
         x = float(value)
@@ -34,7 +36,7 @@ def check_range(
     left = "(" if low_open else "["
     right = ")" if high_open else "]"
     unit_s = f" {unit}" if unit else ""
-    allowed = f"{left}{low:g}, {high:g}{right}{unit_s}"
+    allowed = f"{left}{low:g}, {high:g}{right}{unit_s}" + (f" ({note})" if note else "")
     if not math.isfinite(x):
         raise ValueError(f"{name}={x!r} must be finite; allowed range {allowed}")
     too_low = x <= low if low_open else x < low
