@@ -1,0 +1,211 @@
+"""The `mpa-gym` command: design, analyze, simulate and figures (DESIGN.md's CLI contract).
+
+Every subcommand prints a readable table by default and one JSON object with ``--json``.
+SI units in JSON unless a key says ``_bar``; pressures are given and shown in bar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from mpa_gym.design import (
+    P_MAX_DEFAULT,
+    ConstantStiffness,
+    FeedforwardDesign,
+    FlexorPattern,
+    Reference,
+    StiffnessEnvelope,
+    feasible_stiffness_range,
+    mode_pattern,
+)
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
+
+
+def _add_design_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("reference (Eq. 21) and inputs (Eq. 22 / Table 1 / Eq. 25)")
+    g.add_argument("--x0", type=float, default=0.8, metavar="M", help="X̂0 [m] (default 0.8)")
+    g.add_argument("--amp", type=float, default=0.02, metavar="M", help="Â [m] (default 0.02)")
+    g.add_argument("--period", type=float, default=3.0, metavar="S", help="T [s] (default 3)")
+    g.add_argument("--pf-mean", type=float, default=0.5, metavar="BAR",
+                   help="P'_f0 [bar] (default 0.5, Fig. 3)")
+    g.add_argument("--pf-amp", type=float, default=0.0, metavar="BAR", help="A_f [bar] (default 0)")
+    x = g.add_mutually_exclusive_group()
+    x.add_argument("--mode", type=int, choices=(1, 2, 3), help="Table 1 preset for P'_f0, A_f")
+    x.add_argument("--stiffness", choices=("kmax", "kmin"),
+                   help="Eq. (25) design for the Fig. 11 envelope instead of Eq. (22)")
+    x.add_argument("--stiffness-const", type=float, metavar="N_PER_M",
+                   help="Eq. (25) design for a constant k̂ [N/m]")
+    g.add_argument("--samples", type=int, default=61, metavar="N",
+                   help="samples over one period (default 61)")
+    g.add_argument("--p-max", type=float, default=P_MAX_DEFAULT / BAR, metavar="BAR",
+                   help="upper pressure limit [bar] (default 7)")
+
+
+def _design_from_args(a: argparse.Namespace) -> FeedforwardDesign:
+    check_range("--x0", a.x0, 0.0, low_open=True, unit="m")
+    check_range("--amp", a.amp, 0.0, unit="m")
+    check_range("--period", a.period, 0.0, low_open=True, unit="s")
+    check_range("--p-max", a.p_max, 0.0, low_open=True, unit="bar")
+    check_range("--pf-mean", a.pf_mean, 0.0, a.p_max, unit="bar")
+    check_range("--pf-amp", a.pf_amp, -a.pf_mean, a.pf_mean, unit="bar",
+                note="Eq. 22: |A_f| <= P'_f0")
+    ref = Reference(x0=a.x0, amp=a.amp, period=a.period)
+    if a.stiffness is not None:
+        return FeedforwardDesign(ref, stiffness=StiffnessEnvelope(a.stiffness, ref))
+    if a.stiffness_const is not None:
+        return FeedforwardDesign(ref, stiffness=ConstantStiffness(a.stiffness_const))
+    if a.mode is not None:
+        return FeedforwardDesign(ref, flexor=mode_pattern(a.mode, a.period))
+    return FeedforwardDesign(ref, flexor=FlexorPattern(a.pf_mean * BAR, a.pf_amp * BAR, a.period))
+
+
+def _check_samples(n: int) -> int:
+    if not 2 <= n <= 100_000:
+        raise ValueError(f"--samples={n} is outside the allowed range [2, 100000]")
+    return n
+
+
+def _table(rows: list[list[str]], header: list[str]) -> str:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:>{w}}}" for w in widths)
+    return "\n".join([fmt.format(*header), fmt.format(*("-" * w for w in widths)),
+                      *(fmt.format(*r) for r in rows)])
+
+
+def cmd_design(a: argparse.Namespace) -> dict[str, Any]:
+    d = _design_from_args(a)
+    n = _check_samples(a.samples)
+    t = np.linspace(0.0, d.period, n)
+    s = d.sample(t)
+    rep = d.feasibility(n_samples=max(n, 601), p_max=a.p_max * BAR)
+    out: dict[str, Any] = {
+        "t": t.tolist(), "x_ref": s.x_ref.tolist(), "v_ref": s.v_ref.tolist(),
+        "pe_bar": (s.pe / BAR).tolist(), "pf_bar": (s.pf / BAR).tolist(), "k": s.k.tolist(),
+        "feasible": rep.feasible, "violations": [v.describe() for v in rep.violations],
+    }
+    if d.stiffness is not None:
+        r = d.reference
+        lo, hi = feasible_stiffness_range(r.position(t), r.velocity(t), r.acceleration(t),
+                                          d.params, a.p_max * BAR)
+        out["k_feasible_min"] = [None if np.isnan(v) else float(v) for v in lo]
+        out["k_feasible_max"] = [None if np.isnan(v) else float(v) for v in hi]
+    return out
+
+
+def show_design(o: dict[str, Any]) -> str:
+    idx = np.unique(np.linspace(0, len(o["t"]) - 1, min(len(o["t"]), 13)).round().astype(int))
+    rows = [[f"{o['t'][i]:.3f}", f"{o['x_ref'][i]:.4f}", f"{o['pe_bar'][i]:.3f}",
+             f"{o['pf_bar'][i]:.3f}", f"{o['k'][i]:.1f}"] for i in idx]
+    text = _table(rows, ["t [s]", "X̂ [m]", "P'_e [bar]", "P'_f [bar]", "k [N/m]"])
+    verdict = "feasible" if o["feasible"] else "INFEASIBLE:\n  " + "\n  ".join(o["violations"])
+    return f"{text}\n\ndesign is {verdict}"
+
+
+def cmd_analyze(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.analysis.stability import analyze
+
+    d = _design_from_args(a)
+    rep = analyze(d)
+    return {
+        "int_a1": rep.int_a1,
+        "theorem1_holds": rep.theorem1_holds,
+        "floquet_multipliers": [[float(m.real), float(m.imag)] for m in rep.multipliers],
+        "floquet_moduli": [float(abs(m)) for m in rep.multipliers],
+        "monodromy_det": float(np.linalg.det(rep.monodromy)),
+        "exp_int_a1": float(np.exp(rep.int_a1)),
+        "stable": rep.stable,
+        "feasible": d.feasibility(p_max=a.p_max * BAR).feasible,
+    }
+
+
+def show_analyze(o: dict[str, Any]) -> str:
+    mults = ", ".join(f"{re:+.6f}{im:+.6f}j (|μ| = {abs(complex(re, im)):.6f})"
+                      for re, im in o["floquet_multipliers"])
+    return "\n".join([
+        f"Theorem 1: ∫_0^T a1 dt = {o['int_a1']:.6f}  "
+        f"({'< 0, holds' if o['theorem1_holds'] else '>= 0, violated'})",
+        f"Floquet multipliers: {mults}",
+        f"Liouville: det Φ(T) = {o['monodromy_det']:.10f}, exp(∫a1) = {o['exp_int_a1']:.10f}",
+        f"periodic motion is {'asymptotically stable' if o['stable'] else 'NOT stable'}"
+        f"; design is {'feasible' if o['feasible'] else 'infeasible'}",
+    ])
+
+
+def cmd_simulate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.analysis.simulate import simulate
+
+    return simulate(a.scenario, DEFAULT_PARAMS, dt=a.dt, output_dt=a.output_dt).to_json()
+
+
+def show_simulate(o: dict[str, Any]) -> str:
+    x, xr, t = np.array(o["x"]), np.array(o["x_ref"]), np.array(o["t"])
+    idx = np.unique(np.linspace(0, t.size - 1, 11).round().astype(int))
+    rows = [[f"{t[i]:.2f}", f"{x[i]:.5f}", f"{xr[i]:.5f}", f"{(x[i] - xr[i]) * 1e3:+.3f}"]
+            for i in idx]
+    return (f"scenario {o['scenario']}\n"
+            + _table(rows, ["t [s]", "X [m]", "X̂ [m]", "X − X̂ [mm]"])
+            + f"\n\nlast 3 periods: RMSE {o['rmse_m'] * 1e3:.4f} mm, "
+              f"max |X − X̂| {o['max_abs_err_m'] * 1e3:.4f} mm")
+
+
+def cmd_figures(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.figures import make_figures
+
+    return {"files": [str(p) for p in make_figures(a.out)]}
+
+
+def show_figures(o: dict[str, Any]) -> str:
+    return "wrote:\n  " + "\n  ".join(o["files"])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mpa-gym",
+        description="McKibben-actuated leg: analytic design, stability analysis, simulation.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, help_: str, run: Any, show: Any) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+        p.set_defaults(run=run, show=show)
+        return p
+
+    _add_design_flags(add("design", "feedforward pressures (Eq. 16/22/25) and stiffness (Eq. 23) "
+                          "over one period", cmd_design, show_design))
+    _add_design_flags(add("analyze", "Theorem 1 and Floquet multipliers of a design",
+                          cmd_analyze, show_analyze))
+    p = add("simulate", "run the nominal feedforward against a scenario's plant", cmd_simulate,
+            show_simulate)
+    p.add_argument("--scenario", required=True, metavar="NAME_OR_YAML_PATH",
+                   help="a name in configs/scenarios (nominal, initial_error, impulse, "
+                        "gamma_mismatch, mass_mismatch, kmax, kmin, load_1kg, load_1kg_kmin) "
+                        "or a YAML file")
+    p.add_argument("--dt", type=float, default=5e-3, metavar="S", help="RK4 step [s]")
+    p.add_argument("--output-dt", type=float, default=0.01, metavar="S",
+                   help="spacing of the printed samples [s]")
+    p = add("figures", "write the paper's figures, reproduced in simulation, as PNGs",
+            cmd_figures, show_figures)
+    p.add_argument("--out", default="figures", metavar="DIR", help="output folder")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    a = parser.parse_args(argv)
+    try:
+        out = a.run(a)
+    except ValueError as e:  # bad input: the message names the field, the value and the range
+        print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(out) if a.json else a.show(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
