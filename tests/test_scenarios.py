@@ -1,0 +1,171 @@
+"""The paper's scenarios (Sec. 3.2, 4.4): loading, validation and the behaviour it reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from mpa_gym.analysis.scenario import (
+    ScenarioError,
+    load_scenario,
+    scenario_from_dict,
+    scenario_names,
+)
+from mpa_gym.analysis.simulate import SimulationError, simulate
+from mpa_gym.analysis.stability import analyze, linear_steady_state_error
+from mpa_gym.model.leg import kinematics
+from mpa_gym.model.params import DEFAULT_PARAMS as P
+
+NAMED = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch", "kmax", "kmin",
+         "load_1kg", "load_1kg_kmin"]
+
+
+def test_every_named_scenario_exists_and_round_trips():
+    assert set(NAMED) <= set(scenario_names())
+    for name in NAMED:
+        sc = load_scenario(name)
+        assert sc.name == name and sc.description
+        assert scenario_from_dict(sc.to_dict(), name) == sc
+
+
+def test_initial_error_scenario_is_the_papers():
+    sc = load_scenario("initial_error")
+    x0, v0 = sc.start_state()
+    assert x0 - sc.reference.position(0.0) == pytest.approx(0.02, abs=1e-9)
+    assert v0 - sc.reference.velocity(0.0) == pytest.approx(0.1, abs=1e-6)
+
+
+def _max_err(r, t0, t1):
+    w = (r.t >= t0 - 1e-9) & (r.t <= t1 + 1e-9)
+    return float(np.max(np.abs(r.error[w])))
+
+
+def _period_maxima(r, t0, n):
+    return np.array([_max_err(r, t0 + 3.0 * k, t0 + 3.0 * (k + 1) - 1e-6) for k in range(n)])
+
+
+def _assert_decays_at_floquet_rate(r, t0):
+    # The error shrinks per period by the spectral radius ρ of the monodromy matrix. With complex
+    # multipliers the ratio of successive period maxima oscillates around ρ (±12 % here), so the
+    # geometric mean over 5 periods is compared with ρ to 10 %.
+    rho = analyze(r.scenario.design()).spectral_radius
+    m = _period_maxima(r, t0, 6)
+    assert np.all(np.diff(m) < 0)
+    assert (m[5] / m[0]) ** (1 / 5) == pytest.approx(rho, rel=0.10)
+
+
+def test_converges_after_initial_error():
+    r = simulate("initial_error")
+    assert _max_err(r, 0.0, 3.0) > 0.015
+    _assert_decays_at_floquet_rate(r, 0.0)
+    assert r.max_abs_err_m < 1e-4 * _max_err(r, 0.0, 3.0)
+
+
+def test_converges_after_impulse():
+    sc = load_scenario("impulse")
+    imp = sc.disturbances[0]
+    assert (imp.force_N, imp.duration_s) == (20.0, 0.05)
+    r = simulate(sc)
+    assert _max_err(r, 0.0, imp.t_s) < 1e-6  # on the reference until pushed
+    after = _max_err(r, imp.t_s, imp.t_s + 3.0)
+    assert after > 5e-3  # the push is felt (impulse 1 N s on 3.74 kg)
+    _assert_decays_at_floquet_rate(r, imp.t_s + imp.duration_s)
+
+
+def test_gamma_mismatch_converges_almost_onto_the_reference():
+    # Fig. 4(c): almost the same trajectory. The error is bounded by the force the design
+    # mis-predicts, |Δγ| (G_e² + G_f²) |V̂|, over the lowest stiffness along the reference,
+    # the linearised periodic error matches it to first order.
+    sc = load_scenario("gamma_mismatch")
+    r = simulate(sc)
+    d = sc.design()
+    s = d.sample(np.linspace(0, 3, 301))
+    kin = kinematics(s.x_ref, P.leg, P.mpa)
+    bound = np.max(abs(30.0 - 15.0) * (kin.Ge**2 + kin.Gf**2) * np.abs(s.v_ref)) / s.k.min()
+    assert r.max_abs_err_m < bound
+    w = r.t >= 27.0 - 1e-9
+    pred = linear_steady_state_error(d, sc.plant_params(), r.t[w])
+    assert np.max(np.abs(r.error[w] - pred)) < 0.05 * np.max(np.abs(pred))
+
+
+def test_mass_mismatch_gives_a_stable_periodic_motion_with_steady_state_error():
+    # Fig. 4(d): converges to a periodic motion (error repeats period to period) that sits
+    # below X̂ (heavier plant); magnitude as linear theory predicts to second order in Δm/m = 13 %.
+    sc = load_scenario("mass_mismatch")
+    r = simulate(sc)
+    w1 = (r.t >= 24.0 - 1e-9) & (r.t < 27.0 - 1e-9)
+    w2 = (r.t >= 27.0 - 1e-9) & (r.t < 30.0 - 1e-9)
+    assert np.max(np.abs(r.error[w1] - r.error[w2])) < 1e-6
+    sag = r.error[w2].mean()
+    assert sag < -5e-3
+    pred = linear_steady_state_error(sc.design(), sc.plant_params(), r.t[w2])
+    assert sag == pytest.approx(pred.mean(), rel=0.15)
+    assert analyze(sc.design()).stable
+
+
+def test_load_1kg_kmin_sags_more_than_kmax():
+    # Fig. 14: under the unknown +1 kg the lower-stiffness design tracks worse.
+    kmax, kmin = simulate("load_1kg"), simulate("load_1kg_kmin")
+    assert kmin.rmse_m > kmax.rmse_m
+    assert kmin.error[kmin.metric_window()].mean() < kmax.error[kmax.metric_window()].mean() < 0
+
+
+# ------------------------------------------------------------------------------ malformed input
+BASE = {"name": "t", "duration_s": 6.0}
+
+
+@pytest.mark.parametrize(
+    ("patch", "match"),
+    [
+        ({"colour": 1}, r"unknown key\(s\) \['colour'\]"),
+        ({"plant": {"mas_kg": 4}}, r"plant: unknown key\(s\) \['mas_kg'\]; allowed keys"),
+        ({"plant": {"mass_kg": -1.0}}, r"plant.mass_kg=-1 kg is outside the allowed range"),
+        ({"plant": {"mass_kg": "heavy"}}, r"plant.mass_kg='heavy' must be a number"),
+        ({"plant": {"gamma_Ns_per_m": float("nan")}}, r"gamma_Ns_per_m=nan must be finite"),
+        ({"duration_s": 0.0}, r"duration_s=0 s is outside the allowed range \(0, 3600\]"),
+        ({"inputs": {"pf_mean_bar": 0.5, "pf_amp_bar": 0.9}}, r"pf_amp_bar=0.9 bar is outside"),
+        ({"inputs": {"mode": 7}}, r"inputs.mode=7 must be one of \[1, 2, 3\]"),
+        ({"inputs": {"stiffness": "kmed"}}, r"inputs.stiffness='kmed' must be 'kmax' or 'kmin'"),
+        ({"inputs": {"mode": 1, "stiffness": "kmax"}}, r"at most one of"),
+        ({"initial_state": {"x_m": 2.0, "v_mps": 0.0}}, r"initial_state.x_m=2 m is outside"),
+        ({"initial_state": {"x_m": 0.8}}, r"missing required key\(s\) \['v_mps'\]"),
+        ({"reference": {"x0_m": 0.8, "amp_m": 0.2}}, r"outside the allowed range"),
+        ({"disturbances": [{"type": "kick", "t_s": 1, "force_N": 1, "duration_s": 0.1}]},
+         r"disturbances\[0\].type='kick': allowed types are \['impulse'\]"),
+        ({"disturbances": [{"type": "impulse", "t_s": 9, "force_N": 1, "duration_s": 0.1}]},
+         r"disturbances\[0\].t_s=9 s is outside the allowed range \[0, 6\]"),
+        ({"disturbances": {"type": "impulse"}}, r"disturbances must be a list"),
+    ],
+)
+def test_malformed_scenario_names_key_value_and_range(patch, match):
+    with pytest.raises(ScenarioError, match=match):
+        load_scenario({**BASE, **patch})
+
+
+def test_missing_duration_and_bad_files(tmp_path):
+    with pytest.raises(ScenarioError, match=r"missing required key\(s\) \['duration_s'\]"):
+        load_scenario({"name": "x"})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("duration_s: [1, 2\n")
+    with pytest.raises(ScenarioError, match="is not valid YAML"):
+        load_scenario(bad)
+    with pytest.raises(ScenarioError, match="must be a mapping"):
+        (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+        load_scenario(tmp_path / "list.yaml")
+    with pytest.raises(ScenarioError, match=r"neither a file nor one of the named scenarios"):
+        load_scenario("no_such_scenario")
+    good = tmp_path / "custom.yaml"
+    good.write_text(yaml.safe_dump({**BASE, "plant": {"extra_mass_kg": 0.5}}))
+    assert load_scenario(good).plant.extra_mass_kg == 0.5
+
+
+def test_leaving_the_model_domain_raises_and_keeps_the_partial_run():
+    # A -2 kN push throws the hip below the knee's reach: a clear error, not NaN results.
+    sc = {**BASE, "disturbances": [{"type": "impulse", "t_s": 1.0, "force_N": -2000.0,
+                                    "duration_s": 0.5}]}
+    with pytest.raises(SimulationError, match=r"left the model's domain at t = ") as e:
+        simulate(sc)
+    part = e.value.partial
+    assert part is not None and part.t.size > 0 and np.all(np.isfinite(part.x))
+    assert part.t[-1] >= 1.0
