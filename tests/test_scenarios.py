@@ -132,7 +132,7 @@ BASE = {"name": "t", "duration_s": 6.0}
         ({"initial_state": {"x_m": 0.8}}, r"missing required key\(s\) \['v_mps'\]"),
         ({"reference": {"x0_m": 0.8, "amp_m": 0.2}}, r"outside the allowed range"),
         ({"disturbances": [{"type": "kick", "t_s": 1, "force_N": 1, "duration_s": 0.1}]},
-         r"disturbances\[0\].type='kick': allowed types are \['impulse'\]"),
+         r"disturbances\[0\].type='kick': allowed types are \['impulse', 'static'\]"),
         ({"disturbances": [{"type": "impulse", "t_s": 9, "force_N": 1, "duration_s": 0.1}]},
          r"disturbances\[0\].t_s=9 s is outside the allowed range \[0, 6\]"),
         ({"disturbances": {"type": "impulse"}}, r"disturbances must be a list"),

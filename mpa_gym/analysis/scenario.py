@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from mpa_gym.design.feedforward import (
@@ -52,22 +53,90 @@ class Inputs:
 
 @dataclass(frozen=True)
 class Plant:
-    """Overrides of the true plant; ``None`` keeps the nominal value. The design keeps nominal."""
+    """The true plant: overrides of the nominal model (``None`` keeps the nominal value) and the
+    realism the paper's model leaves out. The design always keeps the nominal model.
+
+    Defaults are the ideal plant of the paper (no lag, no quantisation, perfect sensors).
+    """
 
     extra_mass_kg: float = 0.0  # [kg] load at the hip (Sec. 4.4: +1 kg)
     mass_kg: float | None = None  # [kg] true m instead of Tab. A2's 3.74 kg
     gamma_Ns_per_m: float | None = None  # [N s/m] true γ instead of Tab. A1's 30 N s/m
+    C1_Pa: float | None = None  # [Pa] true Mooney-Rivlin C1 instead of 192 kPa
+    C2_Pa: float | None = None  # [Pa] true Mooney-Rivlin C2 instead of 1.3 kPa
+    thickness_m: float | None = None  # [m] true bladder wall thickness instead of 1 mm
     pressure_lag_s: float = 0.0  # [s] first-order regulator time constant (0: ideal)
+    pressure_dead_time_s: float = 0.0  # [s] regulator dead time (env: whole control steps)
+    pressure_quantum_bar: float = 0.0  # [bar] command resolution of the regulator (0: exact)
+    encoder_resolution_m: float = 0.0  # [m] hip-encoder quantum (0: exact)
+    position_noise_m: float = 0.0  # [m] std of white noise on the measured X
+    velocity_noise_mps: float = 0.0  # [m/s] std of white noise on the measured V
+    pressure_noise_bar: float = 0.0  # [bar] std of white noise on the measured pressures
+
+
+# field -> (low, high, low_open, unit): the allowed range of each plant field, shared by the
+# loader, the randomisation ranges and reset(options=...)
+PLANT_RANGES: dict[str, tuple[float, float, bool, str]] = {
+    "extra_mass_kg": (0.0, 50.0, False, "kg"),
+    "mass_kg": (0.0, 100.0, True, "kg"),
+    "gamma_Ns_per_m": (0.0, 1e4, True, "N s/m"),
+    "C1_Pa": (0.0, 1e8, True, "Pa"),
+    "C2_Pa": (0.0, 1e8, False, "Pa"),
+    "thickness_m": (0.0, 7.5e-3, True, "m"),
+    "pressure_lag_s": (0.0, 1.0, False, "s"),
+    "pressure_dead_time_s": (0.0, 1.0, False, "s"),
+    "pressure_quantum_bar": (0.0, 1.0, False, "bar"),
+    "encoder_resolution_m": (0.0, 0.01, False, "m"),
+    "position_noise_m": (0.0, 0.01, False, "m"),
+    "velocity_noise_mps": (0.0, 1.0, False, "m/s"),
+    "pressure_noise_bar": (0.0, 1.0, False, "bar"),
+}
+# what domain randomisation may draw per episode (plus the initial-state offsets)
+RANDOMIZABLE = ("extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa", "thickness_m",
+                "pressure_lag_s")
+INITIAL_OFFSETS: dict[str, tuple[float, float, bool, str]] = {
+    "initial_x_offset_m": (-0.05, 0.05, False, "m"),
+    "initial_v_offset_mps": (-1.0, 1.0, False, "m/s"),
+}
+
+
+def check_plant_value(key: str, value: Any, where: str = "plant") -> float:
+    """Validate one plant (or initial-offset) value against its allowed range."""
+    rng = {**PLANT_RANGES, **INITIAL_OFFSETS}
+    if key not in rng:
+        raise ScenarioError(f"{where}: unknown key {key!r}; allowed keys are {sorted(rng)}")
+    lo, hi, lo_open, unit = rng[key]
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise ScenarioError(f"{where}.{key}={value!r} must be a number")
+    try:
+        return check_range(f"{where}.{key}", value, lo, hi, low_open=lo_open, unit=unit)
+    except ValueError as e:
+        raise ScenarioError(str(e)) from None
+
+
+@dataclass(frozen=True)
+class Randomization:
+    """Per-episode uniform ranges (low, high) for plant fields and initial-state offsets."""
+
+    ranges: tuple[tuple[str, float, float], ...] = ()
+
+    def as_dict(self) -> dict[str, list[float]]:
+        return {k: [lo, hi] for k, lo, hi in self.ranges}
+
+    def sample(self, rng: np.random.Generator) -> dict[str, float]:
+        """One draw: {field: value} (fields in the order given)."""
+        return {k: float(rng.uniform(lo, hi)) for k, lo, hi in self.ranges}
 
 
 @dataclass(frozen=True)
 class Impulse:
-    """A constant vertical force on the hip for a short time (Sec. 3.2: 20 N for 0.05 s)."""
+    """A constant vertical force on the hip from ``t_s`` for ``duration_s`` (Sec. 3.2: 20 N for
+    0.05 s). ``type: static`` is a force that, once applied, stays (duration = rest of the run)."""
 
     t_s: float  # [s] start
     force_N: float  # [N] positive upward
     duration_s: float  # [s]
-    type: str = "impulse"
+    type: str = "impulse"  # "impulse" or "static"
 
 
 @dataclass(frozen=True)
@@ -79,6 +148,7 @@ class Scenario:
     initial_state: InitialState | None = None  # None: start on the reference, (X̂(0), V̂(0))
     plant: Plant = field(default_factory=Plant)
     disturbances: tuple[Impulse, ...] = ()
+    randomize: Randomization = field(default_factory=Randomization)
     description: str = ""
 
     def start_state(self) -> tuple[float, float]:
@@ -101,13 +171,14 @@ class Scenario:
         return FeedforwardDesign(ref, flexor=FlexorPattern(mean * BAR, amp * BAR, ref.period),
                                  params=params)
 
-    def plant_params(self, params: Params = DEFAULT_PARAMS) -> Params:
-        """The true plant: the nominal model with this scenario's overrides."""
-        pl = self.plant
+    def plant_params(self, params: Params = DEFAULT_PARAMS, plant: Plant | None = None
+                     ) -> Params:
+        """The true plant: the nominal model with this scenario's (or ``plant``'s) overrides."""
+        pl = self.plant if plant is None else plant
         m = (pl.mass_kg if pl.mass_kg is not None else params.leg.m) + pl.extra_mass_kg
-        mpa = params.mpa
-        if pl.gamma_Ns_per_m is not None:
-            mpa = dataclasses.replace(mpa, gamma=pl.gamma_Ns_per_m)
+        over = {"gamma": pl.gamma_Ns_per_m, "C1": pl.C1_Pa, "C2": pl.C2_Pa,
+                "thickness": pl.thickness_m}
+        mpa = dataclasses.replace(params.mpa, **{k: v for k, v in over.items() if v is not None})
         return Params(mpa=mpa, leg=dataclasses.replace(params.leg, m=m))
 
     def to_dict(self) -> dict[str, Any]:
@@ -124,6 +195,7 @@ class Scenario:
                 {"type": d.type, "t_s": d.t_s, "force_N": d.force_N, "duration_s": d.duration_s}
                 for d in self.disturbances
             ],
+            "randomize": self.randomize.as_dict(),
         }
         if self.initial_state is not None:
             d["initial_state"] = dataclasses.asdict(self.initial_state)
@@ -132,7 +204,7 @@ class Scenario:
 
 # ----------------------------------------------------------------------------- loading
 _TOP_KEYS = {"name", "description", "duration_s", "initial_state", "reference", "inputs", "plant",
-             "disturbances"}
+             "disturbances", "randomize"}
 
 
 def _section(d: Any, where: str, allowed: set[str], required: set[str] = frozenset()
@@ -200,18 +272,19 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
                                          unit="N/m"),
             p_max_bar=p_max,
         )
-        plant_d = _section(top.get("plant"), f"{w}: plant",
-                           {f.name for f in dataclasses.fields(Plant)})
-        plant = Plant(
-            extra_mass_kg=_num(plant_d, "extra_mass_kg", "plant", 0.0, low=0.0, high=50.0,
-                               unit="kg"),
-            mass_kg=_num(plant_d, "mass_kg", "plant", None, low=0.0, low_open=True, high=100.0,
-                         unit="kg"),
-            gamma_Ns_per_m=_num(plant_d, "gamma_Ns_per_m", "plant", None, low=0.0,
-                                low_open=True, unit="N s/m"),
-            pressure_lag_s=_num(plant_d, "pressure_lag_s", "plant", 0.0, low=0.0, high=1.0,
-                                unit="s"),
-        )
+        plant_d = _section(top.get("plant"), f"{w}: plant", set(PLANT_RANGES))
+        plant = Plant(**{k: check_plant_value(k, v) for k, v in plant_d.items() if v is not None})
+        rnd_d = _section(top.get("randomize"), f"{w}: randomize",
+                         set(RANDOMIZABLE) | set(INITIAL_OFFSETS))
+        ranges = []
+        for k, v in rnd_d.items():
+            if not (isinstance(v, list | tuple) and len(v) == 2):
+                raise ScenarioError(f"randomize.{k}={v!r} must be a [low, high] pair")
+            lo = check_plant_value(k, v[0], "randomize")
+            hi = check_plant_value(k, v[1], "randomize")
+            if lo > hi:
+                raise ScenarioError(f"randomize.{k}=[{lo:g}, {hi:g}]: low must be <= high")
+            ranges.append((k, lo, hi))
         duration = _num(top, "duration_s", "scenario", None, low=0.0, low_open=True, high=3600.0,
                         unit="s")
         init = None
@@ -229,17 +302,22 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
         dists = []
         for i, dd in enumerate(dist_l):
             where = f"disturbances[{i}]"
-            dd = _section(dd, f"{w}: {where}", {"type", "t_s", "force_N", "duration_s"},
-                          {"type", "t_s", "force_N", "duration_s"})
-            if dd["type"] != "impulse":
-                raise ScenarioError(f"{where}.type={dd['type']!r}: allowed types are ['impulse']")
+            kind = dd.get("type") if isinstance(dd, dict) else None
+            need = {"type", "t_s", "force_N"} | ({"duration_s"} if kind == "impulse" else set())
+            dd = _section(dd, f"{w}: {where}", {"type", "t_s", "force_N", "duration_s"}, need)
+            if kind not in ("impulse", "static"):
+                raise ScenarioError(f"{where}.type={kind!r}: allowed types are "
+                                    "['impulse', 'static']")
+            t_s = _num(dd, "t_s", where, low=0.0, high=duration, unit="s")
             dists.append(Impulse(
-                t_s=_num(dd, "t_s", where, low=0.0, high=duration, unit="s"),
+                t_s=t_s,
                 force_N=_num(dd, "force_N", where, low=-1e4, high=1e4, unit="N"),
-                duration_s=_num(dd, "duration_s", where, low=0.0, low_open=True, high=duration,
-                                unit="s")))
+                duration_s=_num(dd, "duration_s", where, duration - t_s, low=0.0,
+                                low_open=True, high=duration, unit="s"),
+                type=kind))
         return Scenario(name=w, duration_s=duration, reference=ref, inputs=inputs,
                         initial_state=init, plant=plant, disturbances=tuple(dists),
+                        randomize=Randomization(tuple(ranges)),
                         description=str(top.get("description", "")))
     except ScenarioError as e:
         raise ScenarioError(f"scenario {w!r}: {e}") from None

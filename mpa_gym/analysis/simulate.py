@@ -1,7 +1,8 @@
 """Open-loop scenario simulation: the nominal feedforward against a possibly different plant.
 
 Sec. 3.2 and 4.4: the pressures are designed on the nominal model (Eq. 16, 22, 25) and applied as
-functions of time to the true plant of the scenario (mass, γ, load, regulator lag), with the
+functions of time to the true plant of the scenario (mass, γ, C1, C2, bladder thickness, load,
+regulator lag and dead time; open loop, so sensor noise plays no part), with the
 scenario's initial state and impulses. Integration is fixed-step RK4 on a grid that also contains
 every disturbance edge, so the piecewise-constant force is integrated without straddling a jump.
 """
@@ -140,9 +141,11 @@ def simulate(
         steps = np.round(grid / dt)
         keep = (np.abs(grid / dt - steps) < 1e-6) & (steps % ratio == 0)
 
+    dead = sc.plant.pressure_dead_time_s
+
     def u_at(t: np.ndarray, side: str) -> np.ndarray:
-        return np.concatenate([design.pressures(t), _external_force(sc, t, side)[..., None]],
-                              axis=-1)
+        cmd = design.pressures(np.maximum(t - dead, 0.0))  # a dead time delays the command
+        return np.concatenate([cmd, _external_force(sc, t, side)[..., None]], axis=-1)
 
     if method == "reference":
         def rhs(t: float, y: np.ndarray) -> np.ndarray:
@@ -176,7 +179,7 @@ def _result(sc: Scenario, design: Any, grid: np.ndarray, ys: np.ndarray, lag: fl
             keep: np.ndarray) -> SimulationResult:
     t = grid[keep]
     ys = ys[keep]
-    cmd = design.pressures(t)
+    cmd = design.pressures(np.maximum(t - sc.plant.pressure_dead_time_s, 0.0))
     applied = ys[:, 2:4] if lag > 0.0 else cmd
     return SimulationResult(sc, t, ys[:, 0], ys[:, 1], design.reference.position(t), cmd,
                             applied, _external_force(sc, t, "right"))

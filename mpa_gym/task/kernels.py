@@ -1,0 +1,50 @@
+"""Compiled task logic shared by the sim kernels and the hardware env: action to command,
+the safety layer (slew limit then clip) and the reward terms. Scalars in, scalars out."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@numba.njit(**JIT)
+def command_from_action(a, ff, residual, scale, p_max):
+    """[Pa] pressure command of one MPA: ff + a·scale (residual) or (a + 1)/2 · p_max (direct)."""
+    if residual:
+        return ff + a * scale
+    return 0.5 * (a + 1.0) * p_max
+
+
+@numba.njit(**JIT)
+def safe_command(cmd, prev, p_max, max_delta):
+    """Slew-limit ``cmd`` to prev ± max_delta, then clip to [0, p_max]. Returns (cmd, flags)."""
+    flags = 0
+    if cmd > prev + max_delta:
+        cmd = prev + max_delta
+        flags |= 2
+    elif cmd < prev - max_delta:
+        cmd = prev - max_delta
+        flags |= 2
+    if cmd > p_max:
+        cmd = p_max
+        flags |= 1
+    elif cmd < 0.0:
+        cmd = 0.0
+        flags |= 1
+    return cmd, flags
+
+
+@numba.njit(**JIT)
+def reward_terms(err_x, k, k_ref, a_e, a_f, sigma_x, sigma_k, w_k, w_u):
+    """(reward, position term, stiffness term, effort term).
+
+    r = (1 − w_k) exp(−(e_x/σ_x)²) + w_k exp(−((k − k̂)/(k̂ σ_k))²) − w_u (a_e² + a_f²)
+    """
+    rx = (1.0 - w_k) * math.exp(-((err_x / sigma_x) ** 2))
+    rel = (k - k_ref) / (abs(k_ref) * sigma_k) if k_ref != 0.0 else 0.0
+    rk = w_k * math.exp(-(rel * rel)) if math.isfinite(k) else 0.0
+    ru = -w_u * (a_e * a_e + a_f * a_f)
+    return rx + rk + ru, rx, rk, ru
