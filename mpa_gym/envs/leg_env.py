@@ -1,0 +1,217 @@
+"""Single-leg Gymnasium environments: ``MPALeg-v0`` and ``MPALegResidual-v0``."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+
+from mpa_gym.envs.sim import O_R, O_TERM, SimEngine
+from mpa_gym.model.params import DEFAULT_PARAMS, Params
+from mpa_gym.task.config import TaskConfig, action_space, observation_space
+from mpa_gym.task.plan import make_plan
+
+
+def task_config(task: TaskConfig | dict[str, Any] | None) -> TaskConfig:
+    return task if isinstance(task, TaskConfig) else TaskConfig.from_kwargs(task)
+
+
+class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
+    """
+    ## Description
+
+    The one-degree-of-freedom leg of Sugimoto, Naniwa & Osuka (Fig. 2): a hip of mass m slides
+    vertically, the knee is bent by an extensor McKibben muscle wrapped on a pulley and a flexor
+    across the joint. The agent sets both gauge pressures every control period (10 ms) and should
+    make the hip height X follow the reference X̂(t) = X̂0 + Â sin(2πt/T) (Eq. 21). The plant is
+    Eq. (15) with the MPA model of Eq. (2) and the Appendix, integrated by RK4 over each period
+    (within 1e-6 m of an adaptive reference over 30 s), plus the scenario's plant realism.
+
+    ## Action Space
+
+    `Box(-1, 1, (2,), float32)`, extensor first. Out-of-range values are clipped to [−1, 1]
+    (as SB3 clips its policies' actions); NaN, ±inf and wrong shapes raise `ValueError`.
+
+    | Num | Action | Pressure command |
+    |-----|--------|------------------|
+    | 0 | extensor | P'_e = (a₀ + 1)/2 · p_max |
+    | 1 | flexor | P'_f = (a₁ + 1)/2 · p_max |
+
+    The safety layer then limits the change per period (`slew_bar_per_s`) and clips to
+    [0, p_max] (`p_max_bar`, 7 bar); the regulator may quantise, delay and lag the command.
+
+    ## Observation Space
+
+    `Box(float32, (8,))`, measured through the rig's sensors (encoder quantum and noise):
+
+    | Num | Observation | Unit | Min | Max |
+    |-----|-------------|------|-----|-----|
+    | 0 | hip height X | m | 0 | 1 |
+    | 1 | hip velocity V | m/s | −10 | 10 |
+    | 2 | reference X̂ | m | 0 | 1 |
+    | 3 | reference V̂ | m/s | −10 | 10 |
+    | 4 | sin(2π t / T) (phase of the reference) | – | −1 | 1 |
+    | 5 | cos(2π t / T) | – | −1 | 1 |
+    | 6 | measured P'_e | bar | −1 | p_max + 1 |
+    | 7 | measured P'_f | bar | −1 | p_max + 1 |
+
+    Hidden plant parameters (mass, load, γ, C1, C2, bladder thickness, regulator lag) are never
+    observed.
+
+    ## Rewards
+
+    r = (1 − w_k) exp(−(e_x/σ_x)²) + w_k exp(−((k − k̂)/(k̂ σ_k))²) − w_u (a₀² + a₁²)
+
+    with e_x = X − X̂, σ_x = 5 mm, w_u = 0.01; here w_k = 0 (MPALegResidual-v0 uses 0.3), so a
+    perfect tracker earns 1 per step. k is the plant's true joint stiffness −∂F/∂X (Eq. 23) at the
+    applied pressures, k̂ the design's. Each term is in `info` (`reward_position`,
+    `reward_stiffness`, `reward_effort`).
+
+    ## Starting State
+
+    The scenario's initial state (on the reference by default) plus any `randomize` offsets; the
+    pressures start at the feedforward design's values at t = 0.
+
+    ## Episode End
+
+    - Termination: X leaves [`x_min_m`, `x_max_m`] = [0.70, 0.86] m (or the model's domain).
+    - Truncation: after `episode_s` (default: the scenario's `duration_s`, 30 s = 3000 steps).
+
+    ## Arguments
+
+    - `scenario`: a name in `configs/scenarios` (`nominal`, `load_1kg`, …), a YAML path or a dict
+      (DESIGN.md schema; `plant` sets the realism, `randomize` the per-episode ranges).
+    - `stiffness`: the design behind k̂ and (residual env) the feedforward: `None` (the
+      scenario's), `"kmax"`, `"kmin"`, a constant in N/m, or `{"t_s": [...], "k_N_per_m": [...]}`.
+    - `task`: a `TaskConfig` or dict (dt_s, episode_s, p_max_bar, slew_bar_per_s, bounds, reward).
+    - `render_mode`: `"rgb_array"` or `"human"`.
+
+    `reset(options={"plant": {...}, "initial_state": {"x_m": .., "v_mps": ..}})` fixes any plant
+    field (e.g. `{"mass_kg": 4.2}`) or the start for that episode.
+
+    `info` on every step: `x_m`, `x_ref_m`, `k_N_per_m`, `k_ref_N_per_m`, `pressure_cmd_bar` and
+    `pressure_bar` (extensor, flexor), the reward terms, `safety` (bit 1: clipped, bit 2: slew
+    limited) and `t_s`.
+
+    ## Version History
+
+    - v0: initial version.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
+                                          "render_fps": 50}
+    residual = False
+
+    def __init__(
+        self,
+        scenario: Any = "nominal",
+        stiffness: Any = None,
+        task: TaskConfig | dict[str, Any] | None = None,
+        render_mode: str | None = None,
+        params: Params = DEFAULT_PARAMS,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode={render_mode!r} must be one of "
+                             f"{self.metadata['render_modes']} or None")
+        self.cfg = task_config(task)
+        self.plan = make_plan(scenario, stiffness, self.cfg, params)
+        self.engine = SimEngine(self.plan, 1, self.residual, params)
+        self.action_space = action_space()
+        self.observation_space = observation_space(self.cfg, self.residual)
+        self.render_mode = render_mode
+        self._renderer: Any = None
+        self._done = True
+        self._rngs: list[np.random.Generator] = []
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
+              ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self._rngs = [self.np_random]
+        self.engine.reset_rows([0], self._rngs, options)
+        self._done = False
+        if self.render_mode == "human":
+            self.render()
+        return self.engine.obs[0].astype(np.float32), self.engine.info(0)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._done:
+            raise RuntimeError("step() called on a finished (or never started) episode: call "
+                               "reset() first")
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (2,):
+            raise ValueError(f"action has shape {a.shape}; expected (2,) (extensor, flexor) in "
+                             "[-1, 1]")
+        e = self.engine
+        e.step(a.reshape(1, 2), self._rngs)  # NaN/inf raise there; the rest is clipped
+        out = e.out[0]
+        terminated = out[O_TERM] > 0.0
+        truncated = e.idx[0] >= self.plan.n_steps and not terminated
+        self._done = terminated or truncated
+        if self.render_mode == "human":
+            self.render()
+        return (e.obs[0].astype(np.float32), float(out[O_R]), bool(terminated), bool(truncated),
+                e.info(0))
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode="
+                            "'rgb_array' or 'human' to gymnasium.make")
+            return None
+        from mpa_gym.envs.rendering import LegRenderer
+
+        if self._renderer is None:
+            self._renderer = LegRenderer(self.engine.params, self.cfg.p_max_bar,
+                                         human=self.render_mode == "human",
+                                         fps=self.metadata["render_fps"])
+        e, j = self.engine, int(self.engine.idx[0])
+        frame = self._renderer.draw(float(e.state[0, 0]), float(self.plan.x_ref[j]),
+                                    e.state[0, 2:4] / 1e5, float(self.plan.t[j]))
+        return frame if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+class MPALegResidualEnv(MPALegEnv):
+    """
+    ## Description
+
+    `MPALeg-v0` with the paper's analytic feedforward as the expert: every control period the
+    feedforward of Eq. (16) (or the Eq. 25 design for the stiffness target k̂) is applied and the
+    action is a bounded residual on top of it. A zero action applies the feedforward exactly.
+    The policy's job is to keep both the motion X̂ and the joint stiffness k̂ when the true plant
+    differs from the design model (load, mass, γ, C1, C2, bladder, regulator).
+
+    ## Action Space
+
+    `Box(-1, 1, (2,), float32)`: P'_cmd = P'_ff(t + dt/2) + a · `residual_scale_bar` (1 bar),
+    extensor first, then the same safety layer (slew limit, clip to [0, p_max]). Out-of-range
+    values are clipped to [−1, 1]; NaN, ±inf and wrong shapes raise `ValueError`.
+
+    ## Observation Space
+
+    `Box(float32, (9,))`: the 8 observations of `MPALeg-v0` and
+
+    | Num | Observation | Unit | Min | Max |
+    |-----|-------------|------|-----|-----|
+    | 8 | stiffness target k̂(t) | kN/m | −100 | 100 |
+
+    ## Rewards
+
+    As `MPALeg-v0` with w_k = 0.3: r = 0.7 exp(−(e_x/5 mm)²) + 0.3 exp(−((k − k̂)/(0.1 k̂))²)
+    − 0.01 |a|², where k is the plant's true stiffness (Eq. 23) at the applied pressures.
+
+    ## Starting State, Episode End, Arguments
+
+    As `MPALeg-v0`. `stiffness` picks k̂ and so the feedforward: `None` (the scenario's inputs,
+    whose own k is then k̂), `"kmax"`, `"kmin"`, a constant (N/m) or a profile.
+
+    ## Version History
+
+    - v0: initial version.
+    """
+
+    residual = True

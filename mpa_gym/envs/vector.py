@@ -1,0 +1,148 @@
+"""Native vector environments: N legs stepped by one compiled kernel over numpy arrays.
+
+Sub-env i behaves exactly as the single env reset with seed ``seed + i`` (Gymnasium's seeding
+convention for vector envs): same plan, same kernel, its own random generator for domain
+randomisation and sensor noise. Episodes reset in the same step (``AutoresetMode.SAME_STEP``):
+a finished sub-env returns its first new observation, and the last one is in
+``info["final_obs"]`` (with ``info["final_info"]``), which is what SB3 expects.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from mpa_gym.envs.leg_env import task_config
+from mpa_gym.envs.sim import (
+    O_CMDE,
+    O_CMDF,
+    O_FLAGS,
+    O_K,
+    O_R,
+    O_RK,
+    O_RU,
+    O_RX,
+    O_TERM,
+    T_KREF,
+    T_XREF,
+    SimEngine,
+)
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.task.config import TaskConfig, action_space, observation_space
+from mpa_gym.task.plan import make_plan
+
+
+class MPALegVectorEnv(VectorEnv):
+    """``num_envs`` copies of ``MPALeg-v0`` (same arguments), stepped together.
+
+    ``step`` takes actions of shape (num_envs, 2) and returns observations (num_envs, obs_dim)
+    float32, rewards, terminations and truncations of shape (num_envs,), and ``info`` as a dict
+    of arrays with the single env's keys (``pressure_cmd_bar`` and ``pressure_bar`` of shape
+    (num_envs, 2)).
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": [], "autoreset_mode":
+                                          AutoresetMode.SAME_STEP}
+    residual = False
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        scenario: Any = "nominal",
+        stiffness: Any = None,
+        task: TaskConfig | dict[str, Any] | None = None,
+        render_mode: str | None = None,
+        params: Params = DEFAULT_PARAMS,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int | np.integer) or \
+                not 1 <= num_envs <= 1_000_000:
+            raise ValueError(f"num_envs={num_envs!r} must be a whole number in [1, 1000000]")
+        if render_mode is not None:
+            raise ValueError(f"render_mode={render_mode!r}: the vector env does not render; "
+                             "render a single env (gymnasium.make) instead")
+        self.num_envs = int(num_envs)
+        self.cfg = task_config(task)
+        self.plan = make_plan(scenario, stiffness, self.cfg, params)
+        self.engine = SimEngine(self.plan, self.num_envs, self.residual, params)
+        self.single_action_space = action_space()
+        self.single_observation_space = observation_space(self.cfg, self.residual)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.render_mode = None
+        self._rngs: list[np.random.Generator] = []
+        self._all = np.arange(self.num_envs)
+
+    def reset(self, *, seed: int | list[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset every sub-env; ``seed`` an int (sub-env i gets seed + i) or a list."""
+        if seed is None:
+            seeds: list[int | None] = [None] * self.num_envs
+        elif isinstance(seed, int | np.integer):
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"seed has {len(seeds)} entries; expected num_envs="
+                                 f"{self.num_envs}")
+        if seed is not None or not self._rngs:
+            self._rngs = [seeding.np_random(s)[0] for s in seeds]
+        self.engine.reset_rows(self._all, self._rngs, options)
+        return self.engine.obs.astype(np.float32), self._infos(self._all)
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          dict[str, Any]]:
+        if not self._rngs:
+            raise RuntimeError("step() called before reset()")
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (self.num_envs, 2):
+            raise ValueError(f"actions have shape {a.shape}; expected ({self.num_envs}, 2) "
+                             "(extensor, flexor) in [-1, 1]")
+        e = self.engine
+        e.step(a, self._rngs)
+        terminated = e.out[:, O_TERM] > 0.0
+        truncated = (e.idx >= self.plan.n_steps) & ~terminated
+        rewards = e.out[:, O_R].copy()
+        infos = self._infos(self._all)
+        obs = e.obs.astype(np.float32)
+        done = np.flatnonzero(terminated | truncated)
+        if done.size:
+            final_obs = np.full(self.num_envs, None, dtype=object)
+            final_info = np.full(self.num_envs, None, dtype=object)
+            for i in done:
+                final_obs[i] = obs[i].copy()
+                final_info[i] = {k: v[i] for k, v in infos.items()}
+            e.reset_rows(done, self._rngs)
+            obs[done] = e.obs[done]
+            mask = np.zeros(self.num_envs, dtype=bool)
+            mask[done] = True
+            infos.update(final_obs=final_obs, _final_obs=mask, final_info=final_info,
+                         _final_info=mask)
+        return obs, rewards, terminated, truncated, infos
+
+    def _infos(self, rows: np.ndarray) -> dict[str, Any]:
+        e = self.engine
+        j = e.idx[rows]
+        out = e.out[rows]
+        return {
+            "x_m": e.state[rows, 0].copy(),
+            "x_ref_m": e.tab[j, T_XREF],
+            "k_N_per_m": out[:, O_K],
+            "k_ref_N_per_m": e.tab[j, T_KREF],
+            "pressure_cmd_bar": out[:, O_CMDE:O_CMDF + 1] / BAR,
+            "pressure_bar": e.state[rows, 2:4] / BAR,
+            "reward_position": out[:, O_RX],
+            "reward_stiffness": out[:, O_RK],
+            "reward_effort": out[:, O_RU],
+            "safety": out[:, O_FLAGS].astype(np.int64),
+            "t_s": j * self.cfg.dt_s,
+        }
+
+
+class MPALegResidualVectorEnv(MPALegVectorEnv):
+    """``num_envs`` copies of ``MPALegResidual-v0`` (same arguments), stepped together."""
+
+    residual = True
