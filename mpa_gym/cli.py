@@ -164,6 +164,20 @@ def show_figures(o: dict[str, Any]) -> str:
     return "wrote:\n  " + "\n  ".join(o["files"])
 
 
+def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym import bench
+
+    if not 0.05 <= a.seconds <= 60:
+        raise ValueError(f"--seconds={a.seconds} is outside the allowed range [0.05, 60] s")
+    return bench.run(a.seconds, tuple(a.sizes))
+
+
+def show_bench(o: dict[str, Any]) -> str:
+    from mpa_gym import bench
+
+    return bench.show(o)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mpa-gym",
@@ -192,6 +206,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("figures", "write the paper's figures, reproduced in simulation, as PNGs",
             cmd_figures, show_figures)
     p.add_argument("--out", default="figures", metavar="DIR", help="output folder")
+    p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
+            cmd_bench, show_bench)
+    p.add_argument("--seconds", type=float, default=1.0, metavar="S",
+                   help="time per measurement [s] (default 1)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 4096], metavar="N",
+                   help="vector env sizes (default 1 64 1024 4096)")
     return parser
 
 

@@ -1,0 +1,108 @@
+"""`mpa-gym bench`: step rates of the MPA envs beside Gymnasium's classic-control envs, measured
+in the same run, and the integrator's accuracy at the env's control step.
+
+Single envs go through ``gymnasium.make`` (with its default wrappers, as users get them); vector
+envs through ``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``. Every env is
+stepped with actions drawn beforehand from its action space, after a warm-up (compilation,
+caches), so only stepping is timed.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import mpa_gym  # noqa: F401  (registers the envs)
+from mpa_gym.model.params import DEFAULT_PARAMS
+
+SINGLE_IDS = ("MPALeg-v0", "MPALegResidual-v0", "CartPole-v1", "Pendulum-v1")
+VECTOR_IDS = ("MPALeg-v0", "MPALegResidual-v0", "CartPole-v1")
+VECTOR_SIZES = (1, 64, 1024, 4096)
+
+
+def _rate(step: Any, reset: Any, actions: np.ndarray, seconds: float) -> float:
+    """Steps per second of ``step`` over at least ``seconds`` (resetting when done)."""
+    n, i, t0 = 0, 0, time.perf_counter()
+    while True:
+        for _ in range(200):
+            if step(actions[i % len(actions)]):
+                reset()
+            i += 1
+        n += 200
+        dt = time.perf_counter() - t0
+        if dt >= seconds:
+            return n / dt
+
+
+def single_rate(env_id: str, seconds: float) -> float:
+    env = gym.make(env_id)
+    env.reset(seed=0)
+    actions = np.array([env.action_space.sample() for _ in range(1000)])
+
+    def step(a: np.ndarray) -> bool:
+        _, _, te, tr, _ = env.step(a)
+        return te or tr
+
+    _rate(step, lambda: env.reset(), actions, 0.2)  # warm-up
+    r = _rate(step, lambda: env.reset(), actions, seconds)
+    env.close()
+    return r
+
+
+def vector_rate(env_id: str, n: int, seconds: float) -> float:
+    venv = gym.make_vec(env_id, num_envs=n, vectorization_mode="vector_entry_point")
+    venv.reset(seed=0)
+    venv.action_space.seed(0)
+    actions = np.array([venv.action_space.sample() for _ in range(16)])
+    _rate(lambda a: bool(venv.step(a) and False), lambda: None, actions, 0.2)
+    r = _rate(lambda a: bool(venv.step(a) and False), lambda: None, actions, seconds) * n
+    venv.close()
+    return r
+
+
+def integrator_error(duration_s: float = 30.0) -> float:
+    """[m] max |X_RK4 − X_solve_ivp| of the env's RK4 at its 10 ms step, driven by the nominal
+    feedforward from the initial error of Fig. 4(a), against scipy DOP853 (rtol 1e-10)."""
+    from mpa_gym.analysis.simulate import simulate
+
+    sc = {"name": "bench", "duration_s": duration_s,  # Fig. 4(a)'s initial error: off-reference
+          "initial_state": {"x_m": 0.82, "v_mps": 0.1418879}}
+    ref = simulate(sc, DEFAULT_PARAMS, method="reference")
+    rk = simulate(sc, DEFAULT_PARAMS, dt=0.01)
+    return float(np.max(np.abs(rk.x - ref.x)))
+
+
+def run(seconds: float = 1.0, sizes: tuple[int, ...] = VECTOR_SIZES) -> dict[str, Any]:
+    single = {i: single_rate(i, seconds) for i in SINGLE_IDS}
+    vector = {i: {n: vector_rate(i, n, seconds) for n in sizes} for i in VECTOR_IDS}
+    return {
+        "single_steps_per_s": single,
+        "single_ratio_to_pendulum": {i: single[i] / single["Pendulum-v1"] for i in SINGLE_IDS},
+        "vector_env_steps_per_s": {i: {str(n): v for n, v in d.items()} for i, d in
+                                   vector.items()},
+        "vector_ratio_to_cartpole": {i: {str(n): vector[i][n] / vector["CartPole-v1"][n]
+                                         for n in sizes} for i in VECTOR_IDS},
+        "integrator_max_err_m_dt_0.01s_30s": integrator_error(),  # target < 1e-6 m
+    }
+
+
+def show(o: dict[str, Any]) -> str:
+    lines = ["single env (gymnasium.make), steps/s:"]
+    for i, r in o["single_steps_per_s"].items():
+        lines.append(f"  {i:<20} {r:>12,.0f}   x{o['single_ratio_to_pendulum'][i]:.2f} of "
+                     "Pendulum-v1")
+    lines.append("vector env (vector_entry_point), env-steps/s:")
+    sizes = list(next(iter(o["vector_env_steps_per_s"].values())))
+    lines.append("  " + f"{'':<28}" + "".join(f"{'n=' + n:>14}" for n in sizes))
+    for i, d in o["vector_env_steps_per_s"].items():
+        lines.append("  " + f"{i:<28}" + "".join(f"{v:>14,.0f}" for v in d.values()))
+    for i, d in o["vector_ratio_to_cartpole"].items():
+        if i != "CartPole-v1":
+            lines.append("  " + f"{i + ' / CartPole':<28}" + "".join(f"{v:>14.2f}"
+                                                                    for v in d.values()))
+    lines.append("integrator: max |X_RK4(dt = 10 ms) - X_solve_ivp| over 30 s = "
+                 f"{o['integrator_max_err_m_dt_0.01s_30s']:.2e} m")
+    return "\n".join(lines)
