@@ -41,10 +41,12 @@ def test_vector_env_agrees_with_single_envs_step_for_step(env_id, num_envs):
         for k, (s, i) in enumerate(zip(singles, check, strict=True)):
             o, r, te, tr, info = s.step(acts[i])
             assert r == vrew[i] and te == vterm[i] and tr == vtrunc[i]
-            assert info["x_m"] == vinfo["x_m"][i]
-            if te or tr:
+            if te or tr:  # SyncVectorEnv's convention: the last step's obs and info as final_*
                 assert np.array_equal(o, vinfo["final_obs"][i])
-                o, _ = s.reset()
+                assert info["x_m"] == vinfo["final_info"]["x_m"][i]
+                assert vinfo["_final_info"][i]
+                o, info = s.reset()
+            assert info["x_m"] == vinfo["x_m"][i]
             assert np.array_equal(o, vobs[i]), f"sub-env {i} diverged"
             sobs[k] = o
 

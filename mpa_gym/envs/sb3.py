@@ -54,6 +54,11 @@ class SB3VecEnv(VecEnv):
 
     def _split(self, info: dict[str, Any]) -> list[dict[str, Any]]:
         keys = [k for k in info if not k.startswith("_") and k not in ("final_obs", "final_info")]
+        # after an autoreset the finished envs report their last step's info, not the reset's
+        final = info.get("final_info")
+        if final is not None:
+            info = {k: np.where(info["_final_info"].reshape(-1, *[1] * (np.ndim(info[k]) - 1)),
+                                final[k], info[k]) for k in keys}
         return [{k: info[k][i] for k in keys} for i in range(self.num_envs)]
 
     def close(self) -> None:

@@ -153,6 +153,11 @@ def step_batch_parallel(action, state, prev_cmd, idx, consts, lag, delay, head, 
 PARALLEL_MIN_LEGS = 256
 
 
+# Plant fields each leg of a batch may have its own value of (the rest belong to the rig).
+PER_LEG_FIELDS = frozenset({"extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa",
+                            "thickness_m", "pressure_lag_s", *INITIAL_OFFSETS})
+
+
 def resolve_plant(base: Plant, draws: dict[str, float], fixed: dict[str, Any] | None
                   ) -> tuple[Plant, float, float]:
     """The episode's plant: the scenario's, then randomised draws, then ``fixed`` (reset options).
@@ -180,7 +185,8 @@ class SimEngine:
         self.state = np.zeros((n, 4))
         self.prev_cmd = np.zeros((n, 2))
         self.idx = np.zeros(n, dtype=np.int64)
-        self.consts = np.tile(fast.pack(params), (n, 1))
+        self.base_consts = fast.pack(plan.scenario.plant_params(params))
+        self.consts = np.tile(self.base_consts, (n, 1))
         self.lag = np.zeros(n)
         self.plants: list[Plant] = [plan.scenario.plant] * n
         self.obs = np.zeros((n, self.obs_dim))
@@ -222,6 +228,43 @@ class SimEngine:
     def reset_rows(self, rows: Any, rngs: list[np.random.Generator],
                    options: dict[str, Any] | None = None) -> None:
         """Start new episodes for ``rows``: draw (or fix) the plant, the initial state."""
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        fixed, x0, v0 = self._reset_options(options)
+        sc, p0 = self.plan.scenario, self.plan.p0
+        per_leg = bool(sc.randomize.ranges) or any(k in PER_LEG_FIELDS for k in fixed or {})
+        dx = np.zeros(rows.size)
+        dv = np.zeros(rows.size)
+        if per_leg:  # each leg its own plant
+            for r, i in enumerate(rows):
+                plant, dx[r], dv[r] = resolve_plant(sc.plant, sc.randomize.sample(rngs[i]), fixed)
+                try:
+                    self.consts[i] = fast.pack(sc.plant_params(self.params, plant))
+                except ValueError as e:
+                    raise ScenarioError(f"episode plant is invalid: {e}") from None
+                self.plants[i] = plant
+                self.lag[i] = plant.pressure_lag_s
+        else:  # the scenario's plant for every leg: no per-leg work
+            self.consts[rows] = self.base_consts
+            self.lag[rows] = sc.plant.pressure_lag_s
+            for i in rows:
+                self.plants[i] = sc.plant
+        self.state[rows, 0] = x0 + dx
+        self.state[rows, 1] = v0 + dv
+        self.state[rows, 2:] = p0
+        self.prev_cmd[rows] = p0
+        self.delay[rows] = p0
+        self.idx[rows] = 0
+        self.out[rows] = 0.0
+        self.out[rows, O_CMDE:O_CMDF + 1] = p0
+        self.out[rows, O_K] = [fast.force_and_stiffness(*self.state[i], self.consts[i])[1]
+                               for i in (rows if per_leg else rows[:1])]
+        self.draw_noise(rows, rngs)
+        observe_rows(self.obs, rows, self.state, self.idx, self.noise, self.settings[S_ENC],
+                     self.tab)
+
+    def _reset_options(self, options: dict[str, Any] | None
+                       ) -> tuple[dict[str, Any] | None, float, float]:
+        """Validate reset options; apply rig-wide ones; return (per-leg plant fields, X0, V0)."""
         options = dict(options or {})
         unknown = sorted(set(options) - {"plant", "initial_state"})
         if unknown:
@@ -230,14 +273,11 @@ class SimEngine:
         fixed = options.get("plant")
         if fixed is not None and not isinstance(fixed, dict):
             raise ValueError(f"options['plant'] must be a dict of plant fields, got {fixed!r}")
-        plan, sc = self.plan, self.plan.scenario
-        shared = {k: v for k, v in (fixed or {}).items() if k not in
-                  ("extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa", "thickness_m",
-                   "pressure_lag_s", *INITIAL_OFFSETS)}
+        sc = self.plan.scenario
+        shared = {k: check_plant_value(k, v, "options['plant']") for k, v in (fixed or {}).items()
+                  if k not in PER_LEG_FIELDS}
         if shared:
-            base = dataclasses.replace(sc.plant, **{k: check_plant_value(k, v, "options['plant']")
-                                                    for k, v in shared.items()})
-            self._configure_shared(base)
+            self._configure_shared(dataclasses.replace(sc.plant, **shared))
         x0, v0 = sc.start_state()
         init = options.get("initial_state")
         if init is not None:
@@ -250,25 +290,7 @@ class SimEngine:
             if not (lo <= x0 <= hi and np.isfinite(v0)):
                 raise ValueError(f"options['initial_state'].x_m={x0} must lie in the position "
                                  f"bounds [{lo}, {hi}] m and v_mps={v0} must be finite")
-        for i in rows:
-            draws = sc.randomize.sample(rngs[i])
-            plant, dx, dv = resolve_plant(sc.plant, draws, fixed)
-            try:
-                self.consts[i] = fast.pack(sc.plant_params(self.params, plant))
-            except ValueError as e:
-                raise ScenarioError(f"episode plant is invalid: {e}") from None
-            self.plants[i] = plant
-            self.lag[i] = plant.pressure_lag_s
-            self.state[i] = (x0 + dx, v0 + dv, *plan.p0)
-            self.prev_cmd[i] = plan.p0
-            self.out[i] = 0.0
-            self.out[i, O_CMDE:O_CMDF + 1] = plan.p0
-            self.out[i, O_K] = fast.force_and_stiffness(*self.state[i], self.consts[i])[1]
-            self.delay[i] = plan.p0
-            self.idx[i] = 0
-        self.draw_noise(rows, rngs)
-        observe_rows(self.obs, np.asarray(list(rows), dtype=np.int64), self.state, self.idx,
-                     self.noise, self.settings[S_ENC], self.tab)
+        return fixed, x0, v0
 
     def step(self, action: np.ndarray, rngs: list[np.random.Generator]) -> None:
         """Advance every leg one control period (action: (n, 2) float64; clipped to [−1, 1]).

@@ -4,7 +4,9 @@ Sub-env i behaves exactly as the single env reset with seed ``seed + i`` (Gymnas
 convention for vector envs): same plan, same kernel, its own random generator for domain
 randomisation and sensor noise. Episodes reset in the same step (``AutoresetMode.SAME_STEP``):
 a finished sub-env returns its first new observation, and the last one is in
-``info["final_obs"]`` (with ``info["final_info"]``), which is what SB3 expects.
+``info["final_obs"]`` (an object array) with its info in ``info["final_info"]`` (a dict of
+arrays), each with its ``_`` mask, as ``SyncVectorEnv`` does it; the SB3 adapter turns these into
+SB3's ``terminal_observation``.
 """
 
 from __future__ import annotations
@@ -91,7 +93,7 @@ class MPALegVectorEnv(VectorEnv):
         if seed is not None or not self._rngs:
             self._rngs = [seeding.np_random(s)[0] for s in seeds]
         self.engine.reset_rows(self._all, self._rngs, options)
-        return self.engine.obs.astype(np.float32), self._infos(self._all)
+        return self.engine.obs.astype(np.float32), self._infos()
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
@@ -106,37 +108,38 @@ class MPALegVectorEnv(VectorEnv):
         terminated = e.out[:, O_TERM] > 0.0
         truncated = (e.idx >= self.plan.n_steps) & ~terminated
         rewards = e.out[:, O_R].copy()
-        infos = self._infos(self._all)
-        obs = e.obs.astype(np.float32)
-        done = np.flatnonzero(terminated | truncated)
-        if done.size:
-            final_obs = np.full(self.num_envs, None, dtype=object)
-            final_info = np.full(self.num_envs, None, dtype=object)
-            for i in done:
-                final_obs[i] = obs[i].copy()
-                final_info[i] = {k: v[i] for k, v in infos.items()}
-            e.reset_rows(done, self._rngs)
-            obs[done] = e.obs[done]
-            mask = np.zeros(self.num_envs, dtype=bool)
-            mask[done] = True
-            infos.update(final_obs=final_obs, _final_obs=mask, final_info=final_info,
-                         _final_info=mask)
-        return obs, rewards, terminated, truncated, infos
+        done = terminated | truncated
+        if not done.any():
+            return e.obs.astype(np.float32), rewards, terminated, truncated, self._infos()
+        # same-step autoreset (as SyncVectorEnv does it): the finished legs' last observation and
+        # info go to final_obs / final_info, the returned ones are their new episode's first
+        final_info = self._infos()
+        final_info.update({f"_{k}": done for k in list(final_info)})
+        final_obs = np.full(self.num_envs, None, dtype=object)
+        rows = np.flatnonzero(done)
+        last = e.obs[rows].astype(np.float32)
+        for r, i in enumerate(rows):
+            final_obs[i] = last[r]
+        e.reset_rows(rows, self._rngs)
+        infos = self._infos()
+        infos.update(final_obs=final_obs, _final_obs=done, final_info=final_info,
+                     _final_info=done)
+        return e.obs.astype(np.float32), rewards, terminated, truncated, infos
 
-    def _infos(self, rows: np.ndarray) -> dict[str, Any]:
+    def _infos(self) -> dict[str, Any]:
         e = self.engine
-        j = e.idx[rows]
-        out = e.out[rows]
+        j = e.idx
+        out = e.out
         return {
-            "x_m": e.state[rows, 0].copy(),
+            "x_m": e.state[:, 0].copy(),
             "x_ref_m": e.tab[j, T_XREF],
-            "k_N_per_m": out[:, O_K],
+            "k_N_per_m": out[:, O_K].copy(),
             "k_ref_N_per_m": e.tab[j, T_KREF],
             "pressure_cmd_bar": out[:, O_CMDE:O_CMDF + 1] / BAR,
-            "pressure_bar": e.state[rows, 2:4] / BAR,
-            "reward_position": out[:, O_RX],
-            "reward_stiffness": out[:, O_RK],
-            "reward_effort": out[:, O_RU],
+            "pressure_bar": e.state[:, 2:4] / BAR,
+            "reward_position": out[:, O_RX].copy(),
+            "reward_stiffness": out[:, O_RK].copy(),
+            "reward_effort": out[:, O_RU].copy(),
             "safety": out[:, O_FLAGS].astype(np.int64),
             "t_s": j * self.cfg.dt_s,
         }
