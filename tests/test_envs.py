@@ -311,3 +311,16 @@ def test_stiffness_targets_enter_observation_and_reward():
         assert info["k_N_per_m"] == pytest.approx(k_model, rel=1e-10)
         # … which is k̂ = 900 N/m up to the half-step hold (< 0.5 %)
         assert info["k_N_per_m"] == pytest.approx(900.0, rel=5e-3)
+
+
+def test_disturbance_table_is_the_mean_force_over_each_step():
+    # An impulse from 0.105 s for 0.05 s and a static load from 1.0 s: step i carries the force
+    # averaged over [t_i, t_i + dt], so the impulse (1 N s) is delivered exactly.
+    sc = {"name": "d", "duration_s": 2.0, "disturbances": [
+        {"type": "impulse", "t_s": 0.105, "force_N": 20.0, "duration_s": 0.05},
+        {"type": "static", "t_s": 1.0, "force_N": -9.86}]}
+    plan = gym.make("MPALegResidual-v0", scenario=sc).unwrapped.plan
+    f = plan.f_ext
+    assert f[:10].sum() == 0.0 and f[10] == pytest.approx(10.0) and f[15] == pytest.approx(10.0)
+    assert f[:100].sum() * 0.01 == pytest.approx(20.0 * 0.05, rel=1e-12)
+    assert_allclose(f[100:], -9.86)
