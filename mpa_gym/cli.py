@@ -178,6 +178,51 @@ def show_bench(o: dict[str, Any]) -> str:
     return bench.show(o)
 
 
+def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
+    from agents.train import train
+
+    if a.n_timesteps is not None and a.n_timesteps < 1:
+        raise ValueError(f"--n-timesteps={a.n_timesteps} must be >= 1")
+    run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps, progress=not a.no_progress)
+    from stable_baselines3 import PPO
+
+    steps = int(PPO.load(run / "model.zip", device="cpu").num_timesteps)
+    hist = run / "eval" / "evaluations.json"
+    last = json.loads(hist.read_text())[-1] if hist.is_file() else None
+    return {"run_dir": str(run), "timesteps": steps, "last_evaluation": last}
+
+
+def show_train(o: dict[str, Any]) -> str:
+    lines = [f"run folder: {o['run_dir']}  ({o['timesteps']} env steps)"]
+    if o["last_evaluation"]:
+        lines.append(f"held-out evaluation at {o['last_evaluation']['timesteps']} steps:")
+        for name, m in o["last_evaluation"]["scenarios"].items():
+            lines.append(f"  {name:<18} position RMSE {m['position_rmse_mm']:.3f} mm, "
+                         f"stiffness error {m['stiffness_rmse_pct']:.2f} %")
+    return "\n".join(lines)
+
+
+def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
+    from agents.evaluate import HELDOUT_SCENARIOS, PAPER_SCENARIOS, evaluate, write_report
+
+    scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
+    report = evaluate(a.policy, scenarios, a.seed)
+    paths = write_report(report, a.out)
+    return {"results": json.loads(paths["json"].read_text())["results"],
+            "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
+            "plots": str(paths["plots"])}
+
+
+def show_evaluate(o: dict[str, Any]) -> str:
+    res = o["results"]
+    ctrls = list(next(iter(res.values())))
+    rows = [[sc] + [f"{row[c]['position_rmse_mm']:.3f} / {row[c]['stiffness_rmse_pct']:.1f}"
+                    for c in ctrls] for sc, row in res.items()]
+    return ("position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods\n"
+            + _table(rows, ["scenario", *ctrls])
+            + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mpa-gym",
@@ -206,6 +251,26 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("figures", "write the paper's figures, reproduced in simulation, as PNGs",
             cmd_figures, show_figures)
     p.add_argument("--out", default="figures", metavar="DIR", help="output folder")
+    p = add("train", "train PPO from an rl-zoo style config (default configs/ppo_residual.yaml)",
+            cmd_train, show_train)
+    p.add_argument("--config", default=None, metavar="YAML", help="training config")
+    p.add_argument("--run-dir", default=None, metavar="DIR",
+                   help="run folder (default runs/<env>-<time>-s<seed>)")
+    p.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    p.add_argument("--resume", default=None, metavar="RUN_DIR",
+                   help="continue a run (step count, model, normaliser, evaluations)")
+    p.add_argument("--n-timesteps", type=int, default=None, metavar="N",
+                   help="env steps to train (default: the config's, or what remains on resume)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
+            cmd_evaluate, show_evaluate)
+    p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],
+                   metavar="RUN_DIR|ff|pid|mbfb", help="controllers (default ff pid mbfb)")
+    p.add_argument("--scenarios", nargs="+", default=None, metavar="NAME_OR_YAML",
+                   help="default: the paper's scenarios and the held-out plants")
+    p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")
+    p.add_argument("--seed", type=int, default=1_000_000,
+                   help="episode seed (no training env uses seeds this high)")
     p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
             cmd_bench, show_bench)
     p.add_argument("--seconds", type=float, default=1.0, metavar="S",
@@ -220,7 +285,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = parser.parse_args(argv)
     try:
         out = a.run(a)
-    except ValueError as e:  # bad input: the message names the field, the value and the range
+    except (ValueError, FileNotFoundError) as e:  # bad input: names the field, value and range
         print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
         return 2
     print(json.dumps(out) if a.json else a.show(out))

@@ -61,10 +61,12 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Rewards
 
-    r = (1 − w_k) exp(−(e_x/σ_x)²) + w_k exp(−((k − k̂)/(k̂ σ_k))²) − w_u (a₀² + a₁²)
+    r = (1 − w_k) / (1 + (e_x/σ_x)²) + w_k / (1 + ((k − k̂)/(k̂ σ_k))²)
+        − w_u (a₀² + a₁²)
 
-    with e_x = X − X̂, σ_x = 5 mm, w_u = 0.01; here w_k = 0 (MPALegResidual-v0 uses 0.3), so a
-    perfect tracker earns 1 per step. k is the plant's true joint stiffness −∂F/∂X (Eq. 23) at the
+    with e_x = X − X̂, σ_x = 5 mm, σ_k = 0.1, w_u = 0.01; here w_k = 0 (MPALegResidual-v0 uses
+    0.3), so a perfect tracker earns 1 per step; the heavy-tailed kernels keep a gradient toward
+    the target even for errors of several σ. k is the plant's true joint stiffness −∂F/∂X (Eq. 23) at the
     applied pressures, k̂ the design's. Each term is in `info` (`reward_position`,
     `reward_stiffness`, `reward_effort`).
 
@@ -201,7 +203,7 @@ class MPALegResidualEnv(MPALegEnv):
 
     ## Rewards
 
-    As `MPALeg-v0` with w_k = 0.3: r = 0.7 exp(−(e_x/5 mm)²) + 0.3 exp(−((k − k̂)/(0.1 k̂))²)
+    As `MPALeg-v0` with w_k = 0.3: r = 0.7 / (1 + (e_x/5 mm)²) + 0.3 / (1 + ((k − k̂)/(0.1 k̂))²)
     − 0.01 |a|², where k is the plant's true stiffness (Eq. 23) at the applied pressures.
 
     ## Starting State, Episode End, Arguments

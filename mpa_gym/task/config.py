@@ -34,8 +34,8 @@ class TaskConfig:
     x_min_m: float = 0.70  # [m] the episode terminates below this hip height
     x_max_m: float = 0.86  # [m] … or above this one (inside the MPA length domain)
     residual_scale_bar: float = 1.0  # [bar] residual env: action ±1 = feedforward ± this
-    sigma_x_m: float = 0.005  # [m] position error at which the position reward falls to 1/e
-    sigma_k: float = 0.10  # [-] relative stiffness error at which its reward falls to 1/e
+    sigma_x_m: float = 0.005  # [m] position error at which the position reward halves
+    sigma_k: float = 0.10  # [-] relative stiffness error at which its reward halves
     w_stiffness: float | None = None  # weight of the stiffness term; None: 0.3 residual, 0 direct
     w_effort: float = 0.01  # weight of the action-effort penalty |a|²
 

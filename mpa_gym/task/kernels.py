@@ -41,10 +41,14 @@ def safe_command(cmd, prev, p_max, max_delta):
 def reward_terms(err_x, k, k_ref, a_e, a_f, sigma_x, sigma_k, w_k, w_u):
     """(reward, position term, stiffness term, effort term).
 
-    r = (1 − w_k) exp(−(e_x/σ_x)²) + w_k exp(−((k − k̂)/(k̂ σ_k))²) − w_u (a_e² + a_f²)
+    r = (1 − w_k) / (1 + (e_x/σ_x)²) + w_k / (1 + ((k − k̂)/(k̂ σ_k))²) − w_u (a_e² + a_f²)
+
+    Cauchy kernels: 1 on target, 1/2 at one σ, and heavy-tailed, so an error of several σ
+    (a 20 mm sag under an unknown load) still has a gradient toward the target.
     """
-    rx = (1.0 - w_k) * math.exp(-((err_x / sigma_x) ** 2))
+    ex = err_x / sigma_x
+    rx = (1.0 - w_k) / (1.0 + ex * ex)
     rel = (k - k_ref) / (abs(k_ref) * sigma_k) if k_ref != 0.0 else 0.0
-    rk = w_k * math.exp(-(rel * rel)) if math.isfinite(k) else 0.0
+    rk = w_k / (1.0 + rel * rel) if math.isfinite(k) else 0.0
     ru = -w_u * (a_e * a_e + a_f * a_f)
     return rx + rk + ru, rx, rk, ru
