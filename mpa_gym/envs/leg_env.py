@@ -66,8 +66,8 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     with e_x = X − X̂, σ_x = 5 mm, σ_k = 0.1, w_u = 0.01; here w_k = 0 (MPALegResidual-v0 uses
     0.3), so a perfect tracker earns 1 per step; the heavy-tailed kernels keep a gradient toward
-    the target even for errors of several σ. k is the plant's true joint stiffness −∂F/∂X (Eq. 23) at the
-    applied pressures, k̂ the design's. Each term is in `info` (`reward_position`,
+    the target even for errors of several σ. k is the plant's true joint stiffness −∂F/∂X
+    (Eq. 23) at the applied pressures, k̂ the design's. Each term is in `info` (`reward_position`,
     `reward_stiffness`, `reward_effort`).
 
     ## Starting State
