@@ -13,7 +13,7 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       normalize: "{'norm_obs': True, 'norm_reward': True}"
       policy_kwargs: "dict(net_arch=[64, 64], log_std_init=-2.0)"
       env_kwargs: {scenario: {...}, task: {...}}
-      env_wrapper: agents.wrappers.IntegralErrorObservation
+      env_wrapper: agents.wrappers.TrackingErrorObservation
       learning_rate: !!float 3e-4
       ...
     mpa_gym:
@@ -42,7 +42,7 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed"}
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
-WRAPPERS = {"agents.wrappers.IntegralErrorObservation"}
+WRAPPERS = {"agents.wrappers.TrackingErrorObservation"}
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 
 

@@ -125,7 +125,32 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = 1_000_000
             env.close()
             results[sc.name][_label(spec)] = metrics(tr, sc.reference.period, end)
             traces[sc.name][_label(spec)] = tr
-    return {"results": results, "traces": traces, "seed": seed}
+    return {"results": results, "traces": traces, "seed": seed,
+            "learning": learning_speed(policies, results)}
+
+
+def learning_speed(policies: list[str], results: dict[str, Any], scenario: str = "heldout_b"
+                   ) -> dict[str, Any]:
+    """For each run folder: the env steps its held-out evaluations took to reach the
+    feedforward's position RMSE on ``scenario`` (default ``heldout_b``, the held-out plant
+    under an unknown 0.8 kg load; the feedforward is measured in this same report)."""
+    ff = results.get(scenario, {}).get("ff")
+    out: dict[str, Any] = {}
+    for spec in policies:
+        hist_path = Path(spec) / "eval" / "evaluations.json"
+        if not hist_path.is_file():
+            continue
+        hist = json.loads(hist_path.read_text())
+        curve = [(h["timesteps"], h["scenarios"][scenario]["position_rmse_mm"]) for h in hist
+                 if scenario in h["scenarios"]]
+        entry: dict[str, Any] = {"scenario": scenario, "curve": curve}
+        if ff is not None and curve:
+            target = ff["position_rmse_mm"]
+            reached = [t for t, r in curve if r <= target]
+            entry.update(ff_position_rmse_mm=target,
+                         steps_to_ff_score=reached[0] if reached else None)
+        out[_label(spec)] = entry
+    return out
 
 
 def _label(spec: str) -> str:
@@ -155,6 +180,22 @@ def markdown(report: dict[str, Any]) -> str:
                 cell = "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
                 cells.append(cell + (" (terminated)" if row[c]["terminated"] else ""))
             out.append(f"| {sc} | " + " | ".join(cells) + " |")
+        out.append("")
+    learning = report.get("learning") or {}
+    if learning:
+        out += ["## Learning speed", "",
+                "Env steps each run's held-out evaluations took to reach the feedforward's "
+                "position RMSE on its scenario (from the run's `eval/evaluations.json`).", "",
+                "| run | scenario | feedforward RMSE [mm] | steps to reach it "
+                "| curve (steps: mm) |",
+                "|---|---|---|---|---|"]
+        for run, e in learning.items():
+            curve = ", ".join(f"{t}: {r:.3f}" for t, r in e["curve"])
+            steps = e.get("steps_to_ff_score")
+            target = e.get("ff_position_rmse_mm")
+            out.append(f"| {run} | {e['scenario']} | "
+                       f"{'–' if target is None else f'{target:.3f}'} | "
+                       f"{'not within the run' if steps is None else steps} | {curve} |")
         out.append("")
     return "\n".join(out)
 
@@ -192,7 +233,8 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     """report.json, report.md and plots/<scenario>.png in ``out_dir``."""
     out = Path(out_dir)
     (out / "plots").mkdir(parents=True, exist_ok=True)
-    data = {"seed": report["seed"], "results": _finite(report["results"])}
+    data = {"seed": report["seed"], "results": _finite(report["results"]),
+            "learning": report.get("learning", {})}
     (out / "report.json").write_text(json.dumps(data, indent=1, allow_nan=False))
     (out / "report.md").write_text(markdown(report))
     return {"json": out / "report.json", "markdown": out / "report.md",

@@ -9,14 +9,14 @@ from typing import Any
 import numpy as np
 
 from agents.baselines import BASELINES, Policy, make_baseline
-from agents.wrappers import integral_step
+from agents.wrappers import features, integral_step
 
 
 class LearnedPolicy:
     """An SB3 model with its observation normaliser and integral-error state.
 
     ``predict`` takes the env's own observation (as the baselines do): it appends the integral
-    of the tracking error when the model was trained with ``IntegralErrorObservation``,
+    of the tracking error when the model was trained with ``TrackingErrorObservation``,
     normalises with the training statistics and returns the deterministic action.
     """
 
@@ -38,7 +38,7 @@ class LearnedPolicy:
             if episode_start is not None:
                 start |= np.asarray(episode_start, dtype=bool).reshape(-1)
             integ = np.where(start, 0.0, integral_step(integ, obs, self.dt, self.integral_limit))
-            obs = np.concatenate([obs, integ[:, None]], axis=1).astype(np.float32)
+            obs = features(obs, integ)
             state = integ
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)

@@ -31,7 +31,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 from agents.config import ConfigError, TrainConfig, load_config
 from agents.evaluate import metrics, run_episode
 from agents.policies import LearnedPolicy
-from agents.wrappers import IntegralErrorVectorObservation
+from agents.wrappers import TrackingErrorVectorObservation
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
 
@@ -44,7 +44,7 @@ def make_train_env(cfg: TrainConfig, seed: int) -> VecEnv:
     venv = gym.make_vec(cfg.env_id, num_envs=cfg.n_envs, vectorization_mode="vector_entry_point",
                         **cfg.env_kwargs)
     if cfg.integral_observation:
-        venv = IntegralErrorVectorObservation(venv, INTEGRAL_LIMIT)
+        venv = TrackingErrorVectorObservation(venv, INTEGRAL_LIMIT)
     vec: VecEnv = VecMonitor(SB3VecEnv(venv))
     vec.seed(seed)
     if cfg.normalize:
@@ -111,9 +111,18 @@ class HeldOutEval(EvalCallback):
             self.evaluations_length = [list(r) for r in npz["ep_lengths"]]
             self.best_mean_reward = float(max(np.mean(r) for r in self.evaluations_results))
 
+    def _on_training_start(self) -> None:
+        if not self.history:  # a fresh run: evaluate the initial policy too (learning curves)
+            self._evaluate()
+
     def _on_step(self) -> bool:
-        if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0 or not self.scenarios:
-            return True
+        if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            self._evaluate()
+        return True
+
+    def _evaluate(self) -> None:
+        if not self.scenarios:
+            return
         norm = self.model.get_vec_normalize_env()
         policy = LearnedPolicy(self.model, norm, INTEGRAL_LIMIT if self.cfg.integral_observation
                                else None, float((self.cfg.env_kwargs.get("task") or {})
@@ -148,7 +157,6 @@ class HeldOutEval(EvalCallback):
             self.model.save(Path(self.best_model_save_path) / "best_model")
             if norm is not None:
                 norm.save(str(Path(self.best_model_save_path) / "vecnormalize.pkl"))
-        return True
 
 
 def _resolved(cfg: TrainConfig, seed: int) -> dict[str, Any]:

@@ -95,3 +95,32 @@ def test_ppo_trains_on_the_adapter():
     model = PPO("MlpPolicy", vec, n_steps=32, batch_size=32, n_epochs=1, seed=0, device="cpu")
     model.learn(128)
     assert model.num_timesteps == 128
+
+
+def test_several_designs_one_per_episode_and_vector_agreement():
+    # stiffness=[None, "kmax", "kmin"]: each episode follows one design, drawn at reset from
+    # the env's generator; the vector env still matches single envs step for step.
+    designs = [None, "kmax", "kmin"]
+    task = {"episode_s": 0.2}
+    env = gym.make("MPALegResidual-v0", stiffness=designs, task=task)
+    seen = set()
+    for seed in range(12):
+        env.reset(seed=seed)
+        plan = env.unwrapped.plan
+        seen.add(getattr(plan.design.stiffness, "kind", "own"))
+        *_, info = env.step(np.zeros(2))  # a zero residual applies this episode's feedforward
+        np.testing.assert_allclose(info["pressure_cmd_bar"], plan.ff[0] / 1e5, rtol=1e-15)
+    assert seen == {"own", "kmax", "kmin"}
+    venv = gym.make_vec("MPALegResidual-v0", num_envs=3, vectorization_mode="vector_entry_point",
+                        stiffness=designs, task=task)
+    singles = [gym.make("MPALegResidual-v0", stiffness=designs, task=task) for _ in range(3)]
+    vobs, _ = venv.reset(seed=5)
+    for i, s in enumerate(singles):
+        assert np.array_equal(s.reset(seed=5 + i)[0], vobs[i])
+    for _ in range(50):  # 20-step episodes: two autoresets with fresh design draws
+        vobs, *_ = venv.step(np.zeros((3, 2)))
+        for i, s in enumerate(singles):
+            o, _, te, tr, _ = s.step(np.zeros(2))
+            if te or tr:
+                o, _ = s.reset()
+            assert np.array_equal(o, vobs[i])

@@ -10,11 +10,20 @@ import numpy as np
 from mpa_gym.envs.sim import O_R, O_TERM, SimEngine
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
 from mpa_gym.task.config import TaskConfig, action_space, observation_space
-from mpa_gym.task.plan import make_plan
+from mpa_gym.task.plan import TaskPlan, make_plan
 
 
 def task_config(task: TaskConfig | dict[str, Any] | None) -> TaskConfig:
     return task if isinstance(task, TaskConfig) else TaskConfig.from_kwargs(task)
+
+
+def make_plans(scenario: Any, stiffness: Any, cfg: TaskConfig, params: Params
+               ) -> list[TaskPlan]:
+    """One plan per stiffness design; a list of designs gives one drawn per episode."""
+    designs = stiffness if isinstance(stiffness, list) else [stiffness]
+    if not designs:
+        raise ValueError("stiffness=[] must name at least one design")
+    return [make_plan(scenario, s, cfg, params) for s in designs]
 
 
 class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -85,7 +94,8 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
     - `scenario`: a name in `configs/scenarios` (`nominal`, `load_1kg`, …), a YAML path or a dict
       (DESIGN.md schema; `plant` sets the realism, `randomize` the per-episode ranges).
     - `stiffness`: the design behind k̂ and (residual env) the feedforward: `None` (the
-      scenario's), `"kmax"`, `"kmin"`, a constant in N/m, or `{"t_s": [...], "k_N_per_m": [...]}`.
+      scenario's), `"kmax"`, `"kmin"`, a constant in N/m, or `{"t_s": [...], "k_N_per_m": [...]}`;
+      a list of these draws one design per episode (e.g. `[null, kmax, kmin]` for training).
     - `task`: a `TaskConfig` or dict (dt_s, episode_s, p_max_bar, slew_bar_per_s, bounds, reward).
     - `render_mode`: `"rgb_array"` or `"human"`.
 
@@ -117,14 +127,19 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"render_mode={render_mode!r} must be one of "
                              f"{self.metadata['render_modes']} or None")
         self.cfg = task_config(task)
-        self.plan = make_plan(scenario, stiffness, self.cfg, params)
-        self.engine = SimEngine(self.plan, 1, self.residual, params)
+        self.engine = SimEngine(make_plans(scenario, stiffness, self.cfg, params), 1,
+                                self.residual, params)
         self.action_space = action_space()
         self.observation_space = observation_space(self.cfg, self.residual)
         self.render_mode = render_mode
         self._renderer: Any = None
         self._done = True
         self._rngs: list[np.random.Generator] = []
+
+    @property
+    def plan(self) -> TaskPlan:
+        """The plan (reference, feedforward, disturbances) of the current episode."""
+        return self.engine.plan_of(0)
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -148,7 +163,7 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
         e.step(a.reshape(1, 2), self._rngs)  # NaN/inf raise there; the rest is clipped
         out = e.out[0]
         terminated = out[O_TERM] > 0.0
-        truncated = e.idx[0] >= self.plan.n_steps and not terminated
+        truncated = bool(e.truncated[0]) and not terminated
         self._done = terminated or truncated
         if self.render_mode == "human":
             self.render()
@@ -166,7 +181,8 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
             self._renderer = LegRenderer(self.engine.params, self.cfg.p_max_bar,
                                          human=self.render_mode == "human",
                                          fps=self.metadata["render_fps"])
-        e, j = self.engine, int(self.engine.idx[0])
+        e = self.engine
+        j = int(e.idx[0] - e.start[0])
         frame = self._renderer.draw(float(e.state[0, 0]), float(self.plan.x_ref[j]),
                                     e.state[0, 2:4] / 1e5, float(self.plan.t[j]))
         return frame if self.render_mode == "rgb_array" else None

@@ -158,6 +158,16 @@ PER_LEG_FIELDS = frozenset({"extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa
                             "thickness_m", "pressure_lag_s", *INITIAL_OFFSETS})
 
 
+def _table(plan: TaskPlan) -> np.ndarray:
+    """The per-step table of one plan, (n_steps + 1, 8) with the T_* columns."""
+    tab = np.zeros((plan.n_steps + 1, 8))
+    tab[:, T_XREF], tab[:, T_VREF], tab[:, T_KREF] = plan.x_ref, plan.v_ref, plan.k_ref
+    tab[:, T_SIN], tab[:, T_COS] = plan.sin_phase, plan.cos_phase
+    tab[:-1, T_FFE:T_FFF + 1] = plan.ff
+    tab[:-1, T_FEXT] = plan.f_ext
+    return tab
+
+
 def resolve_plant(base: Plant, draws: dict[str, float], fixed: dict[str, Any] | None
                   ) -> tuple[Plant, float, float]:
     """The episode's plant: the scenario's, then randomised draws, then ``fixed`` (reset options).
@@ -173,10 +183,23 @@ def resolve_plant(base: Plant, draws: dict[str, float], fixed: dict[str, Any] | 
 
 
 class SimEngine:
-    """State and buffers of a batch of ``n`` simulated legs following one task plan."""
+    """State and buffers of a batch of ``n`` simulated legs following task plans.
 
-    def __init__(self, plan: TaskPlan, n: int, residual: bool, params: Params = DEFAULT_PARAMS
-                 ) -> None:
+    With several plans (one scenario, several stiffness designs) each episode follows one of
+    them, drawn at reset. Their tables are stacked along the step axis, plan p occupying rows
+    p (N + 1) … p (N + 1) + N, so a leg's step index points straight into its plan's rows and the
+    compiled step needs no notion of plans at all.
+    """
+
+    def __init__(self, plans: TaskPlan | list[TaskPlan], n: int, residual: bool,
+                 params: Params = DEFAULT_PARAMS) -> None:
+        plans = list(plans) if isinstance(plans, list | tuple) else [plans]
+        plan = plans[0]
+        for other in plans[1:]:
+            if other.n_steps != plan.n_steps or other.scenario != plan.scenario or \
+                    other.cfg != plan.cfg:
+                raise ValueError("all plans of an engine share the scenario and task settings")
+        self.plans = plans
         self.plan, self.n, self.residual, self.params = plan, int(n), bool(residual), params
         cfg: TaskConfig = plan.cfg
         self.cfg = cfg
@@ -184,7 +207,8 @@ class SimEngine:
         self.w_k = cfg.stiffness_weight(residual)
         self.state = np.zeros((n, 4))
         self.prev_cmd = np.zeros((n, 2))
-        self.idx = np.zeros(n, dtype=np.int64)
+        self.idx = np.zeros(n, dtype=np.int64)  # row of the stacked tables
+        self.start = np.zeros(n, dtype=np.int64)  # first row of each leg's plan
         self.base_consts = fast.pack(plan.scenario.plant_params(params))
         self.consts = np.tile(self.base_consts, (n, 1))
         self.lag = np.zeros(n)
@@ -193,12 +217,8 @@ class SimEngine:
         self.out = np.zeros((n, 9))
         self.noise = np.zeros((n, 4))
         self.head = 0
-        self.tab = np.zeros((plan.n_steps + 1, 8))
-        self.tab[:, T_XREF], self.tab[:, T_VREF], self.tab[:, T_KREF] = (plan.x_ref, plan.v_ref,
-                                                                           plan.k_ref)
-        self.tab[:, T_SIN], self.tab[:, T_COS] = plan.sin_phase, plan.cos_phase
-        self.tab[:-1, T_FFE:T_FFF + 1] = plan.ff
-        self.tab[:-1, T_FEXT] = plan.f_ext
+        self.rows_per_plan = plan.n_steps + 1
+        self.tab = np.concatenate([_table(p) for p in plans])
         self._configure_shared(plan.scenario.plant)
 
     def _configure_shared(self, pl: Plant) -> None:
@@ -230,7 +250,12 @@ class SimEngine:
         """Start new episodes for ``rows``: draw (or fix) the plant, the initial state."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
         fixed, x0, v0 = self._reset_options(options)
-        sc, p0 = self.plan.scenario, self.plan.p0
+        sc = self.plan.scenario
+        if len(self.plans) > 1:  # each new episode follows one of the designs
+            which = np.array([rngs[i].integers(len(self.plans)) for i in rows])
+        else:
+            which = np.zeros(rows.size, dtype=np.int64)
+        p0 = np.array([p.p0 for p in self.plans])[which]
         per_leg = bool(sc.randomize.ranges) or any(k in PER_LEG_FIELDS for k in fixed or {})
         dx = np.zeros(rows.size)
         dv = np.zeros(rows.size)
@@ -252,8 +277,8 @@ class SimEngine:
         self.state[rows, 1] = v0 + dv
         self.state[rows, 2:] = p0
         self.prev_cmd[rows] = p0
-        self.delay[rows] = p0
-        self.idx[rows] = 0
+        self.delay[rows] = p0[:, None, :]
+        self.idx[rows] = self.start[rows] = which * self.rows_per_plan
         self.out[rows] = 0.0
         self.out[rows, O_CMDE:O_CMDF + 1] = p0
         self.out[rows, O_K] = [fast.force_and_stiffness(*self.state[i], self.consts[i])[1]
@@ -311,7 +336,12 @@ class SimEngine:
 
     @property
     def truncated(self) -> np.ndarray:
-        return self.idx >= self.plan.n_steps
+        """Legs whose episode has run its full length."""
+        return self.idx - self.start >= self.plan.n_steps
+
+    def plan_of(self, i: int) -> TaskPlan:
+        """The plan leg i follows in its current episode."""
+        return self.plans[int(self.start[i] // self.rows_per_plan)]
 
     def info(self, i: int) -> dict[str, Any]:
         """The step info of leg i (DESIGN.md keys, the reward terms, safety flags)."""
@@ -328,7 +358,7 @@ class SimEngine:
             "reward_stiffness": float(o[O_RK]),
             "reward_effort": float(o[O_RU]),
             "safety": int(o[O_FLAGS]),
-            "t_s": j * self.cfg.dt_s,
+            "t_s": (j - int(self.start[i])) * self.cfg.dt_s,
         }
 
 

@@ -18,7 +18,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from mpa_gym.envs.leg_env import task_config
+from mpa_gym.envs.leg_env import make_plans, task_config
 from mpa_gym.envs.sim import (
     O_CMDE,
     O_CMDF,
@@ -35,7 +35,6 @@ from mpa_gym.envs.sim import (
 )
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.config import TaskConfig, action_space, observation_space
-from mpa_gym.task.plan import make_plan
 
 
 class MPALegVectorEnv(VectorEnv):
@@ -68,8 +67,9 @@ class MPALegVectorEnv(VectorEnv):
                              "render a single env (gymnasium.make) instead")
         self.num_envs = int(num_envs)
         self.cfg = task_config(task)
-        self.plan = make_plan(scenario, stiffness, self.cfg, params)
-        self.engine = SimEngine(self.plan, self.num_envs, self.residual, params)
+        self.engine = SimEngine(make_plans(scenario, stiffness, self.cfg, params),
+                                self.num_envs, self.residual, params)
+        self.plan = self.engine.plan  # the first design (all share the episode length)
         self.single_action_space = action_space()
         self.single_observation_space = observation_space(self.cfg, self.residual)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
@@ -106,7 +106,7 @@ class MPALegVectorEnv(VectorEnv):
         e = self.engine
         e.step(a, self._rngs)
         terminated = e.out[:, O_TERM] > 0.0
-        truncated = (e.idx >= self.plan.n_steps) & ~terminated
+        truncated = e.truncated & ~terminated
         rewards = e.out[:, O_R].copy()
         done = terminated | truncated
         if not done.any():
@@ -141,7 +141,7 @@ class MPALegVectorEnv(VectorEnv):
             "reward_stiffness": out[:, O_RK].copy(),
             "reward_effort": out[:, O_RU].copy(),
             "safety": out[:, O_FLAGS].astype(np.int64),
-            "t_s": j * self.cfg.dt_s,
+            "t_s": (j - e.start) * self.cfg.dt_s,
         }
 
 
