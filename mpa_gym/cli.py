@@ -223,6 +223,75 @@ def show_evaluate(o: dict[str, Any]) -> str:
             + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
 
 
+def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.hardware.emulator import Emulator, LinkFaults
+    from mpa_gym.hardware.transport import PtyPair, UDPServer
+
+    faults = LinkFaults(latency_s=a.latency, jitter_s=a.jitter, drop_prob=a.drop,
+                        late_prob=a.late, corrupt_prob=a.corrupt,
+                        position_noise_m=a.position_noise)
+    link = UDPServer(a.host, a.port) if a.udp else PtyPair()
+    where = (f"udp://{link.address[0]}:{link.address[1]}" if a.udp
+             else f"serial://{link.slave_path}")
+    print(f"emulating the rig at {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+    emu = Emulator(link, a.scenario, faults=faults, watchdog_s=a.watchdog)
+    try:
+        emu.run(a.duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        link.close()
+    s = emu.stats
+    return {"device": where, "commands": s.commands, "telemetry_sent": s.telemetry_sent,
+            "watchdog_vents": s.watchdog_vents, "corrupt_received": s.corrupt_received}
+
+
+def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
+    from agents.rollout import rollout
+
+    emu = link = None
+    device = a.device
+    if a.dry_run:
+        from mpa_gym.hardware.emulator import Emulator
+        from mpa_gym.hardware.transport import UDPServer
+
+        link = UDPServer("127.0.0.1", 0)
+        emu = Emulator(link, a.scenario)
+        thread = emu.start_thread()
+        device = f"udp://127.0.0.1:{link.address[1]}"
+    elif device is None:
+        raise ValueError("--device is required unless --dry-run (serial:///dev/ttyX or "
+                         "udp://HOST:PORT)")
+    from mpa_gym.hardware.env import HardwareFault
+    from mpa_gym.hardware.transport import TransportError
+
+    try:
+        return rollout(a.policy, device, a.log, a.episodes, a.scenario, a.control_hz,
+                       a.episode_s)
+    except (HardwareFault, TransportError) as e:  # the rig is vented; the log is on disk
+        print(f"mpa-gym rollout: stopped, rig vented: {e} (log: {a.log})", file=sys.stderr)
+        raise SystemExit(3) from None
+    finally:
+        if emu is not None:
+            emu.stop()
+            thread.join(timeout=2.0)
+            link.close()
+
+
+def show_rollout(o: dict[str, Any]) -> str:
+    lines = [f"log: {o['log']}"]
+    for i, m in enumerate(o["episodes"]):
+        lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "
+                     f"{m['position_max_mm']:.3f} mm, stiffness RMSE "
+                     f"{m['stiffness_rmse_pct']:.2f} %, saturation {m['saturation_pct']:.1f} %"
+                     + (f", STOPPED: {m['fault']}" if "fault" in m else ""))
+    t = o["timing"]
+    lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns, p99 jitter "
+                 f"{t['p99_jitter_ms']:.3f} ms, median command latency "
+                 f"{t['median_latency_ms']:.3f} ms")
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mpa-gym",
@@ -271,6 +340,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")
     p.add_argument("--seed", type=int, default=1_000_000,
                    help="episode seed (no training env uses seeds this high)")
+    p = add("emulate", "play the rig (plant in real time, wire protocol, watchdog) on a pty or UDP",
+            cmd_emulate, lambda o: json.dumps(o))
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--serial", action="store_true", help="on a pseudo-terminal (prints its path)")
+    g.add_argument("--udp", action="store_true", help="on UDP (prints host:port)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=0, help="UDP port (0: any free one)")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="the plant the emulator plays")
+    p.add_argument("--watchdog", type=float, default=0.05, metavar="S",
+                   help="vent after this long without commands [s]")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
+    for flag, kind in (("--latency", "s"), ("--jitter", "s"), ("--drop", "probability"),
+                       ("--late", "probability"), ("--corrupt", "probability"),
+                       ("--position-noise", "m")):
+        p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
+    p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
+            cmd_rollout, show_rollout)
+    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb")
+    p.add_argument("--device", default=None, metavar="serial:///dev/ttyX|udp://HOST:PORT")
+    p.add_argument("--dry-run", action="store_true", help="start an emulator and use it")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="reference and feedforward design (the plant is the rig)")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--episode-s", type=float, default=None, metavar="S")
+    p.add_argument("--control-hz", type=float, default=100.0, metavar="HZ")
+    p.add_argument("--log", default="runs/rollout.jsonl", metavar="FILE",
+                   help="per-step JSON-lines log, written as it happens")
     p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
             cmd_bench, show_bench)
     p.add_argument("--seconds", type=float, default=1.0, metavar="S",

@@ -1,0 +1,1 @@
+"""Hardware rig: wire protocol, transports, device emulator and the hardware env."""
