@@ -48,10 +48,14 @@ class LearnedPolicy:
 
 def load_run(run_dir: str | Path, which: str = "final") -> tuple[LearnedPolicy, Any]:
     """The policy of a training run folder (``final`` model or the ``best`` one) and its config."""
+    import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     from agents.config import load_config
+
+    # one small MLP per step: a thread pool only adds latency (and competes with the rig's loop)
+    torch.set_num_threads(1)
 
     run = Path(run_dir)
     cfg = load_config(run / "config.yaml")

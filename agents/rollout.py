@@ -35,6 +35,10 @@ def preflight(env: HardwareLegEnv, test_bar: float = 0.5, hold_s: float = 0.3,
         raise HardwareFault(f"pre-flight: no telemetry within {link_timeout_s:g} s: check the "
                             "device is on, the URL, cable / network, and that nothing else "
                             "holds the port")
+    settle_end = time.monotonic() + 3.0  # a vented leg sinks onto its end stop: let it rest
+    while abs(env._tel.v_mps) > 0.05 and time.monotonic() < settle_end:
+        env.vent()
+        env._read(time.monotonic() + 0.05)
     t = env._tel
     lo, hi = 0.6, 0.87
     if not (lo <= t.x_m <= hi and math.isfinite(t.v_mps) and abs(t.v_mps) < 0.5):
@@ -67,7 +71,9 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             scenario: Any = "nominal", control_hz: float = 100.0, episode_s: float | None = None,
             seed: int = 0) -> dict[str, Any]:
     """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing."""
-    policy, env_id, run_cfg = load_policy(policy_spec, {"scenario": scenario})
+    # a baseline's integrator and feedforward timing follow the rig's control period
+    policy, env_id, run_cfg = load_policy(policy_spec, {"scenario": scenario,
+                                                        "task": {"dt_s": 1.0 / control_hz}})
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")

@@ -286,9 +286,10 @@ def show_rollout(o: dict[str, Any]) -> str:
                      f"{m['stiffness_rmse_pct']:.2f} %, saturation {m['saturation_pct']:.1f} %"
                      + (f", STOPPED: {m['fault']}" if "fault" in m else ""))
     t = o["timing"]
+    ms = lambda v: "–" if v is None or v != v else f"{v:.3f} ms"  # noqa: E731
     lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns, p99 jitter "
-                 f"{t['p99_jitter_ms']:.3f} ms, median command latency "
-                 f"{t['median_latency_ms']:.3f} ms")
+                 f"{ms(t['p99_jitter_ms'])}, median command latency "
+                 f"{ms(t['median_latency_ms'])}")
     return "\n".join(lines)
 
 
