@@ -350,8 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=0, help="UDP port (0: any free one)")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
                    help="the plant the emulator plays")
-    p.add_argument("--watchdog", type=float, default=0.05, metavar="S",
-                   help="vent after this long without commands [s]")
+    p.add_argument("--watchdog", type=float, default=0.04, metavar="S",
+                   help="vent after this long without commands [s] (default 0.04)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
     for flag, kind in (("--latency", "s"), ("--jitter", "s"), ("--drop", "probability"),
                        ("--late", "probability"), ("--corrupt", "probability"),

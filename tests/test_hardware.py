@@ -41,10 +41,15 @@ def rig(request):
 
 
 def compare_with_sim(url, n=100):
-    """Max |X_hw − X_sim| over n steps of the same random residuals, and max |V|."""
-    with HardwareLegEnv(url, residual=True, task=TASK, settle_s=0.3) as hw:
+    """(max |X_hw − X_sim|, max |V|, max timing slip [s]) over n steps of the same random
+    residuals; the slip is the largest period error plus the largest command latency."""
+    sim = gym.make("MPALegResidual-v0", task=TASK)
+    sim.reset(seed=0)
+    sim.step(np.zeros(2))  # compile the sim's kernels now, not while the rig waits for commands
+    # stale_s and the emulator's watchdog are relaxed here: these tests compare trajectories,
+    # and a scheduling hiccup of the shared 2-core test machine must not stop the episode
+    with HardwareLegEnv(url, residual=True, task=TASK, settle_s=0.3, stale_s=0.2) as hw:
         obs, _ = hw.reset(seed=0)
-        sim = gym.make("MPALegResidual-v0", task=TASK)
         sobs, _ = sim.reset(seed=0, options={"initial_state": {"x_m": float(obs[0]),
                                                                "v_mps": float(obs[1])}})
         rng = np.random.default_rng(0)
@@ -59,7 +64,9 @@ def compare_with_sim(url, n=100):
                                        atol=1e-5)  # float32 on the wire
             dx.append(abs(hinfo["x_m"] - sinfo["x_m"]))
             vmax = max(vmax, abs(sobs[1]))
-    return max(dx), vmax
+        period = np.array(hw.timing["period_s"])
+        slip = np.nanmax(np.abs(period - hw.cfg.dt_s)) + np.nanmax(hw.timing["latency_s"])
+    return max(dx), vmax, slip
 
 
 @pytest.mark.parametrize("kind", ["udp", "serial"])
@@ -67,9 +74,9 @@ def test_lockstep_emulator_agrees_with_the_sim_env_exactly(kind):
     # The emulator advancing exactly one 10 ms period per command (its 1 ms RK4 steps against
     # the sim's 5 ms ones, and float32 pressures and velocity on the wire) matches the sim env
     # to 1e-6 m: the env, protocol and transport add nothing of their own.
-    url, emu, link, thread = serve(kind, lockstep_dt_s=0.01)
+    url, emu, link, thread = serve(kind, lockstep_dt_s=0.01, watchdog_s=0.5)
     try:
-        err, _ = compare_with_sim(url)
+        err, _, _ = compare_with_sim(url)
         assert err < 1e-6
     finally:
         emu.stop()
@@ -88,13 +95,20 @@ def test_same_spaces_and_info_as_the_sim_env(rig):
         assert set(sim.reset(seed=0)[1]) <= set(info)
 
 
-def test_real_time_emulator_agrees_with_the_sim_env_within_its_timing(rig):
+@pytest.mark.parametrize("kind", ["udp", "serial"])
+def test_real_time_emulator_agrees_with_the_sim_env_within_its_timing(kind):
     # In real time a command takes effect when it arrives and telemetry is up to one 1 ms tick
-    # old, plus thread scheduling on a loaded 2-core machine: a timing offset of a few ms,
-    # i.e. |ΔX| ~ offset x max|V| (4 ms allowed) plus 5e-5 m for its effect on the dynamics.
-    url, _ = rig
-    err, vmax = compare_with_sim(url)
-    assert err < 4e-3 * vmax + 5e-5, (err, vmax)
+    # old; on top come the loop's own timing slips (period error, command latency) measured in
+    # this run. The state offset is then ~ (2 ms + 2 x slip) x max|V| (2x: a slip shifts both
+    # the command and the observation), plus 5e-5 m for its effect on the dynamics.
+    url, emu, link, thread = serve(kind, watchdog_s=0.5)
+    try:
+        err, vmax, slip = compare_with_sim(url)
+    finally:
+        emu.stop()
+        thread.join(timeout=2.0)
+        link.close()
+    assert err < (2e-3 + 2 * slip) * vmax + 5e-5, (err, vmax, slip)
 
 
 def test_lost_link_vents_within_50_ms(rig):
@@ -106,7 +120,8 @@ def test_lost_link_vents_within_50_ms(rig):
     last = emu.stats.last_command_time
     time.sleep(0.15)  # the PC stops talking (a dead process or a pulled cable)
     assert emu.vented and emu.faults_flags & proto.FAULT_WATCHDOG_VENT
-    assert emu.stats.vent_time - last <= 0.050 + 0.002  # watchdog 50 ms, 1 ms loop tick
+    # the 40 ms watchdog leaves 10 ms for the emulator's loop to notice
+    assert emu.stats.vent_time - last <= 0.050, emu.stats.vent_time - last
     assert np.all(emu.cmd == 0.0)
     hw.link.close()
     hw._closed = True

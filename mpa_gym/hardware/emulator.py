@@ -3,9 +3,10 @@
 It runs the plant (the scenario's true plant, compiled RK4 in ≤ 1 ms steps) in real time, applies
 each pressure command as it arrives (through the regulator's first-order lag), streams telemetry
 every ``telemetry_period_s``, and behaves like firmware: when commands stop for
-``watchdog_s`` it vents both MPAs and raises ``FAULT_WATCHDOG_VENT`` until commands resume; a
-``Vent`` message vents at once. For tests it injects what real links do: latency and jitter on
-telemetry, dropped, late and corrupt frames, and sensor noise.
+``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last command even when its
+own loop is a few ms late) it vents both MPAs and raises ``FAULT_WATCHDOG_VENT`` until
+commands resume; a ``Vent`` message vents at once. For tests it injects what real links do:
+latency and jitter on telemetry, dropped, late and corrupt frames, and sensor noise.
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ class Emulator:
 
     def __init__(self, link: Any, scenario: Any = "nominal", params: Params = DEFAULT_PARAMS,
                  faults: LinkFaults | None = None, telemetry_period_s: float = 0.001,
-                 watchdog_s: float = 0.05, seed: int = 0, lockstep_dt_s: float | None = None
+                 watchdog_s: float = 0.04, seed: int = 0, lockstep_dt_s: float | None = None
                  ) -> None:
         check_range("telemetry_period_s", telemetry_period_s, 1e-4, 0.1, unit="s")
         check_range("watchdog_s", watchdog_s, 1e-3, 10.0, unit="s")
@@ -96,6 +97,7 @@ class Emulator:
         self._last_cmd_seq = 0
         self._outbox: list[tuple[float, bytes]] = []
         self._stop = threading.Event()
+        self._advance(0.0)  # compile (or load) the plant kernel before serving, not mid-episode
 
     # -- physics ----------------------------------------------------------------------------
     def _advance(self, dt: float) -> None:
