@@ -237,8 +237,8 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
     emu = Emulator(link, a.scenario, faults=faults, watchdog_s=a.watchdog)
     try:
         emu.run(a.duration)
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt:  # Ctrl-C is how an emulator is meant to stop
+        emu.stop()
     finally:
         link.close()
     s = emu.stats

@@ -198,9 +198,12 @@ def test_decode_frame_says_what_is_wrong(data: bytes, match: str) -> None:
 @given(st.one_of(st.binary(max_size=64), st.binary(max_size=48).map(lambda b: SYNC + b)))
 def test_decode_frame_raises_only_protocol_error(data: bytes) -> None:
     try:
-        decode_frame(data)
+        msg = decode_frame(data)
     except ProtocolError:
-        pass
+        return  # the only exception allowed
+    # what does decode is a whole, well-formed frame of a known type
+    assert isinstance(msg, Command | Vent | Telemetry)
+    assert len(encode(msg)) == len(data)
 
 
 def test_protocol_error_is_a_value_error() -> None:
