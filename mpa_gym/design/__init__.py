@@ -18,7 +18,6 @@ from mpa_gym.design.feedforward import (
     feedforward_extensor_pressure,
     flexor_pressure_for_stiffness,
     joint_stiffness,
-    pressure_bar,
     stiffness_sweep,
 )
 from mpa_gym.design.reference import MODES, FlexorPattern, Reference, mode_pattern
@@ -45,6 +44,5 @@ __all__ = [
     "flexor_pressure_for_stiffness",
     "joint_stiffness",
     "mode_pattern",
-    "pressure_bar",
     "stiffness_sweep",
 ]

@@ -351,7 +351,3 @@ def constant_flexor(pf_bar: float, period: float = 3.0) -> FlexorPattern:
     """Constant P'_f (Fig. 3: 0.5 bar)."""
     return FlexorPattern(mean=pf_bar * BAR, amp=0.0, period=period)
 
-
-def pressure_bar(p: ArrayLike) -> np.ndarray:
-    """Pa -> bar (for the edges: CLI, configs, info)."""
-    return np.asarray(p, dtype=float) / BAR

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -60,7 +60,6 @@ class EmulatorStats:
     watchdog_vents: int = 0
     last_command_time: float = math.nan  # [s] monotonic
     vent_time: float = math.nan  # [s] monotonic time of the last watchdog vent
-    events: list[str] = field(default_factory=list)
 
 
 class Emulator:

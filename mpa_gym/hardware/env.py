@@ -195,7 +195,9 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self.overruns = 0
         self._done = False
         obs = self._observe()
-        return obs, self._info(np.zeros(4), 0, p0)
+        t = self._tel
+        k0 = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)[1]
+        return obs, self._info(np.zeros(4), 0, p0, k0)
 
     def _observe(self) -> np.ndarray:
         t, p, j = self._tel, self.plan, self._j
@@ -263,7 +265,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             self.timing["period_s"].append(period)
         latency = self._latency[-1] if self._latency else math.nan
         self.timing["latency_s"].append(latency)
-        info = self._info(np.array(r), flags, cmd, period, latency)
+        info = self._info(np.array(r), flags, cmd, k, period, latency)
         if reason is not None:
             info["fault"] = reason
         if terminated:
@@ -272,10 +274,9 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         reward = float(r[0]) if not terminated else 0.0
         return self._observe(), reward, terminated, truncated, info
 
-    def _info(self, r: np.ndarray, flags: int, cmd: np.ndarray, period: float = math.nan,
-              latency: float = math.nan) -> dict[str, Any]:
+    def _info(self, r: np.ndarray, flags: int, cmd: np.ndarray, k: float,
+              period: float = math.nan, latency: float = math.nan) -> dict[str, Any]:
         t, p, j = self._tel, self.plan, self._j
-        k = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)[1]
         return {
             "x_m": float(t.x_m), "x_ref_m": float(p.x_ref[j]), "k_N_per_m": float(k),
             "k_ref_N_per_m": float(p.k_ref[j]), "pressure_cmd_bar": np.asarray(cmd) / BAR,

@@ -24,12 +24,3 @@ def acos(x: Array) -> Array:
         return math.acos(x) if -1.0 <= x <= 1.0 else math.nan
     return np.arccos(x)
 
-
-def as_real(x: object, name: str = "value") -> Array:
-    """A float stays a float; anything else becomes a float ndarray."""
-    if isinstance(x, float):
-        return x
-    if isinstance(x, int | np.integer):
-        return float(x)
-    arr = np.asarray(x, dtype=float)
-    return float(arr) if arr.ndim == 0 else arr
