@@ -23,7 +23,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from mpa_gym.model.dynamics import force_terms
+from mpa_gym.design.feedforward import affine_in_pressures
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.plan import TaskPlan, make_plan
@@ -146,16 +146,10 @@ class StiffnessFeedback(_PlanPolicy):
         p = self.params
         f_star = p.leg.m * (a_ref + p.leg.g) + correction
         k_star = obs[:, OK] * 1000.0
-        # F and k are affine in (P'_e, P'_f) at fixed (X, V): three evaluations give them
-        zero = np.zeros_like(x)
         with np.errstate(invalid="ignore"):
-            t0 = force_terms(x, v, zero, zero, p)
-            te = force_terms(x, v, zero + BAR, zero, p)
-            tf = force_terms(x, v, zero, zero + BAR, p)
-        A = np.empty((x.size, 2, 2))
-        A[:, 0, 0], A[:, 0, 1] = (te.F - t0.F) / BAR, (tf.F - t0.F) / BAR
-        A[:, 1, 0], A[:, 1, 1] = -(te.dF_dX - t0.dF_dX) / BAR, -(tf.dF_dX - t0.dF_dX) / BAR
-        rhs = np.stack([f_star - t0.F, k_star + t0.dF_dX], axis=-1)
+            c = affine_in_pressures(x, v, p)
+        A = c.J
+        rhs = np.stack([f_star - c.F0, k_star - c.k0], axis=-1)
         with np.errstate(invalid="ignore"):  # outside the model's domain: NaN, handled below
             pressures = np.linalg.solve(A, rhs[..., None])[..., 0]
         pressures = np.clip(pressures, 0.0, self.cfg.p_max_bar * BAR)

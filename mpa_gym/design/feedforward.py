@@ -83,6 +83,33 @@ def affine_in_pf(
     return AffineInPf(e0, (e_bar - e0) / BAR, k0, (k_bar - k0) / BAR)
 
 
+class AffineInPressures(NamedTuple):
+    """At fixed (X, V): F = F0 + J[0] · (P'_e, P'_f) and k = k0 + J[1] · (P'_e, P'_f)."""
+
+    F0: np.ndarray  # [N]
+    k0: np.ndarray  # [N/m]
+    J: np.ndarray  # (..., 2, 2): [[∂F/∂P'_e, ∂F/∂P'_f], [∂k/∂P'_e, ∂k/∂P'_f]] [N/Pa], [N/m/Pa]
+
+
+def affine_in_pressures(x: ArrayLike, v: ArrayLike, p: Params = DEFAULT_PARAMS
+                        ) -> AffineInPressures:
+    """F (Eq. 5) and k (Eq. 23) as affine functions of both pressures at fixed (X, V).
+
+    Each MPA force is affine in its own pressure, so three evaluations (0, 1 bar on either MPA)
+    determine them exactly. Used to map a (force, stiffness) correction to pressures.
+    """
+    x, v = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(v, dtype=float))
+    zero = np.zeros(x.shape)
+    t0 = force_terms(x, v, zero, zero, p)
+    te = force_terms(x, v, zero + BAR, zero, p)
+    tf = force_terms(x, v, zero, zero + BAR, p)
+    J = np.empty((*x.shape, 2, 2))
+    J[..., 0, 0], J[..., 0, 1] = (te.F - t0.F) / BAR, (tf.F - t0.F) / BAR
+    J[..., 1, 0] = -(te.dF_dX - t0.dF_dX) / BAR
+    J[..., 1, 1] = -(tf.dF_dX - t0.dF_dX) / BAR
+    return AffineInPressures(t0.F, -t0.dF_dX, J)
+
+
 def flexor_pressure_for_stiffness(
     k_hat: ArrayLike, x: ArrayLike, v: ArrayLike, a: ArrayLike, p: Params = DEFAULT_PARAMS
 ) -> np.ndarray:
