@@ -13,7 +13,9 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       normalize: "{'norm_obs': True, 'norm_reward': True}"
       policy_kwargs: "dict(net_arch=[64, 64], log_std_init=-2.0)"
       env_kwargs: {scenario: {...}, task: {...}}
-      env_wrapper: agents.wrappers.TrackingErrorObservation
+      env_wrapper:
+        - agents.wrappers.TrackingErrorObservation: {harmonics: 1}
+        - agents.wrappers.ForceStiffnessAction: {force_N: 20.0, stiffness_rel: 0.3}
       learning_rate: !!float 3e-4
       ...
     mpa_gym:
@@ -42,7 +44,9 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed"}
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
-WRAPPERS = {"agents.wrappers.TrackingErrorObservation"}
+OBS_WRAPPER = "agents.wrappers.TrackingErrorObservation"
+ACTION_WRAPPER = "agents.wrappers.ForceStiffnessAction"
+WRAPPERS = (OBS_WRAPPER, ACTION_WRAPPER)
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 
 
@@ -59,14 +63,20 @@ class TrainConfig:
     normalize: dict[str, Any]  # VecNormalize kwargs; {} = no normalisation
     policy_kwargs: dict[str, Any]
     env_kwargs: dict[str, Any]
-    integral_observation: bool
     ppo_kwargs: dict[str, Any]
+    # kwargs of TrackingErrorObservation / ForceStiffnessAction; None: not used
+    observation_wrapper: dict[str, Any] | None = None
+    action_wrapper: dict[str, Any] | None = None
     seed: int = 0
     eval_scenarios: list[Any] = field(default_factory=list)
     eval_freq: int = 100_000  # env steps between evaluations
     checkpoint_freq: int = 500_000  # env steps between checkpoints
     eval_seed: int = 1_000_000  # seeds of evaluation episodes (no training env uses them)
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
+
+    @property
+    def integral_observation(self) -> bool:
+        return self.observation_wrapper is not None
 
 
 def _literal(text: str, key: str) -> Any:
@@ -156,9 +166,7 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
     if not isinstance(env_kwargs, dict) or set(env_kwargs) - {"scenario", "stiffness", "task"}:
         raise ConfigError(f"{where}.env_kwargs={env_kwargs!r}: allowed keys are ['scenario', "
                           "'stiffness', 'task']")
-    wrapper = hp.get("env_wrapper")
-    if wrapper is not None and wrapper not in WRAPPERS:
-        raise ConfigError(f"{where}.env_wrapper={wrapper!r}: allowed {sorted(WRAPPERS)}")
+    wrappers = _wrappers(hp.get("env_wrapper"), env_id, f"{where}.env_wrapper")
     ppo = {k: hp[k] for k in PPO_KEYS if k in hp}
     lr = ppo.get("learning_rate")
     if isinstance(lr, str) and not (lr.startswith("lin_") and _is_float(lr[4:])):
@@ -173,7 +181,8 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
     cfg = TrainConfig(
         env_id=env_id, n_envs=n_envs, n_timesteps=n_timesteps, policy="MlpPolicy",
         normalize=normalize, policy_kwargs=pk, env_kwargs=env_kwargs,
-        integral_observation=wrapper is not None, ppo_kwargs=ppo,
+        ppo_kwargs=ppo, observation_wrapper=wrappers.get(OBS_WRAPPER),
+        action_wrapper=wrappers.get(ACTION_WRAPPER),
         seed=_int(h, "seed", 0, 2**31 - 1, f"{source}: mpa_gym"),
         eval_scenarios=list(h.get("eval_scenarios") or []),
         eval_freq=_int(h, "eval_freq", 1, 1e10, f"{source}: mpa_gym"),
@@ -182,6 +191,46 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
         raw=copy.deepcopy(data))
     _check_ppo(cfg, where)
     return cfg
+
+
+def _wrappers(spec: Any, env_id: str, where: str) -> dict[str, dict[str, Any]]:
+    """rl-zoo's ``env_wrapper``: a name, ``{name: kwargs}``, or a list of those → {name: kwargs}.
+
+    The kwargs are checked here, so a typo fails before training starts."""
+    from agents.wrappers import check_action_kwargs, check_observation_kwargs
+
+    if spec is None:
+        return {}
+    out: dict[str, dict[str, Any]] = {}
+    for item in spec if isinstance(spec, list) else [spec]:
+        if isinstance(item, dict) and len(item) == 1:
+            name, kwargs = next(iter(item.items()))
+            kwargs = {} if kwargs is None else kwargs
+        else:
+            name, kwargs = item, {}
+        if name not in WRAPPERS:
+            raise ConfigError(f"{where}={item!r}: allowed wrappers {list(WRAPPERS)}, each a name "
+                              "or {name: kwargs}")
+        if name in out:
+            raise ConfigError(f"{where}: {name} is given twice")
+        if not isinstance(kwargs, dict):
+            raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")
+        check, allowed = ((check_observation_kwargs, ("limit_m_s", "harmonics", "previous_action",
+                                                     "mask_pressures"))
+                          if name == OBS_WRAPPER else
+                          (check_action_kwargs, ("force_N", "stiffness_rel")))
+        unknown = sorted(set(kwargs) - set(allowed))
+        if unknown:
+            raise ConfigError(f"{where}: {name}: unknown key(s) {unknown}; allowed keys are "
+                              f"{list(allowed)}")
+        try:
+            check(**kwargs)
+        except ValueError as e:
+            raise ConfigError(f"{where}: {name}: {e}") from None
+        if name == ACTION_WRAPPER and env_id != "MPALegResidual-v0":
+            raise ConfigError(f"{where}: {name} needs MPALegResidual-v0, not {env_id}")
+        out[name] = dict(kwargs)
+    return out
 
 
 def _is_float(s: str) -> bool:

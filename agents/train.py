@@ -31,20 +31,22 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 from agents.config import ConfigError, TrainConfig, load_config
 from agents.evaluate import metrics, run_episode
 from agents.policies import LearnedPolicy
-from agents.wrappers import TrackingErrorVectorObservation
+from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
-INTEGRAL_LIMIT = 0.02  # [m s] anti-windup bound of the integral-error observation
 
 
 def make_train_env(cfg: TrainConfig, seed: int) -> VecEnv:
-    """Native vector env → (integral error) → SB3 adapter → VecMonitor → VecNormalize."""
+    """Native vector env → (tracking-error features) → (force–stiffness actions) → SB3 adapter
+    → VecMonitor → VecNormalize."""
     venv = gym.make_vec(cfg.env_id, num_envs=cfg.n_envs, vectorization_mode="vector_entry_point",
                         **cfg.env_kwargs)
-    if cfg.integral_observation:
-        venv = TrackingErrorVectorObservation(venv, INTEGRAL_LIMIT)
+    if cfg.observation_wrapper is not None:
+        venv = TrackingErrorVectorObservation(venv, **cfg.observation_wrapper)
+    if cfg.action_wrapper is not None:
+        venv = ForceStiffnessVectorAction(venv, **cfg.action_wrapper)
     vec: VecEnv = VecMonitor(SB3VecEnv(venv))
     vec.seed(seed)
     if cfg.normalize:
@@ -124,9 +126,7 @@ class HeldOutEval(EvalCallback):
         if not self.scenarios:
             return
         norm = self.model.get_vec_normalize_env()
-        policy = LearnedPolicy(self.model, norm, INTEGRAL_LIMIT if self.cfg.integral_observation
-                               else None, float((self.cfg.env_kwargs.get("task") or {})
-                                                .get("dt_s", 0.01)))
+        policy = LearnedPolicy.from_config(self.model, norm, self.cfg)
         entry: dict[str, Any] = {"timesteps": int(self.num_timesteps), "scenarios": {}}
         returns, lengths = [], []
         for sc in self.scenarios:

@@ -1,102 +1,297 @@
-"""Controller-side features for learned policies: the tracking error, its rate and integral.
+"""Controller-side features and action coordinates for learned policies.
 
-The env observes X and X̂ separately; a network has to subtract two numbers that each vary by
-centimetres to see a sub-millimetre error, and a memoryless policy can only answer an unknown
-static load with a proportional correction, so a steady sag remains (a PID has its integrator for
-that). These wrappers append e = X̂ − X, ė = V̂ − V and I = clip(∫e dt, ±``limit_m_s``) to the
-observation — what a PID computes from the same measurements, never a plant parameter.
-``TrackingErrorObservation`` wraps a single env (and is what an rl-zoo config names as
-``env_wrapper``); ``TrackingErrorVectorObservation`` wraps the native vector env (same-step
-autoreset). Both use ``integral_step`` and ``features``.
+Observation: the env observes X and X̂ separately; a network has to subtract two numbers that each
+vary by centimetres to see a sub-millimetre error, and a memoryless policy can only answer an
+unknown static load with a proportional correction, so a steady sag remains (a PID has its
+integrator for that). ``TrackingErrorObservation`` appends e = X̂ − X, ė = V̂ − V and the integrals
+
+    I_0 = ∫ e dt,   I_sh = ∫ e sin(hφ) dt,   I_ch = ∫ e cos(hφ) dt   (h = 1 … ``harmonics``),
+
+each clipped to ±``limit_m_s`` (anti-windup), φ the reference phase the env observes. I_0 is a
+PID's integrator; the harmonic pairs are the internal model of a periodic reference (a resonant
+controller's integrators): they hold whatever periodic correction the plant needs, so a policy can
+cancel a periodic error — and the in-phase part, a force error that follows X̂ − X_0, is a
+stiffness error the policy can correct. With ``previous_action`` the action the env was last
+given is appended too: the measured pressures mix the policy's own last command with the
+regulator's lag, and only with the command known can a policy tell them apart (without it, a
+policy that learned to overdrive lagging regulators chatters on a lag-free one). All are what a
+controller computes from its measurements and its own commands, never a plant parameter.
+
+Action: ``ForceStiffnessAction`` lets the policy act in the coordinates the task is posed in: a
+ground-force correction ΔF = a_F · ``force_N`` and a stiffness correction Δk = a_k ·
+``stiffness_rel`` · k̂. Both are affine in the two pressures (``affine_in_pressures``), so on the
+nominal model at the reference position the pressure correction is one 2×2 solve; it is applied
+as the env's residual action (clipped to [−1, 1]). a = 0 is the feedforward expert, and a force
+correction alone leaves the nominal stiffness at k̂ — the redundancy the paper's design uses.
+
+Single-env wrappers are what an rl-zoo config names as ``env_wrapper``; the ``…Vector…`` ones wrap
+the native vector env (same-step autoreset). Both use the module's functions, so they agree.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import gymnasium as gym
+import numba
 import numpy as np
 from gymnasium import spaces
 from gymnasium.vector import VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
-OX, OV, OXR, OVR = 0, 1, 2, 3  # observation columns of X, V, X̂, V̂
-N_FEATURES = 3
+from mpa_gym.model import fast
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.task.config import check_action
+
+OX, OV, OXR, OVR, OSIN, OCOS, OPE, OPF, OK = range(9)  # observation columns (task.config)
+MAX_HARMONICS = 5
+
+
+def n_integrals(harmonics: int) -> int:
+    """Number of integral features: I_0 and one (sin, cos) pair per harmonic."""
+    return 1 + 2 * harmonics
+
+
+def check_observation_kwargs(limit_m_s: Any = 0.02, harmonics: Any = 0,
+                             previous_action: Any = False, mask_pressures: Any = False
+                             ) -> tuple[float, int, bool, bool]:
+    """Validated (limit_m_s, harmonics, previous_action, mask_pressures); ``ValueError`` names
+    the bad one and its range."""
+    if isinstance(limit_m_s, bool) or not isinstance(limit_m_s, int | float) or \
+            not 0 < limit_m_s <= 1.0:
+        raise ValueError(f"limit_m_s={limit_m_s!r} must be a number in (0, 1] m s")
+    if isinstance(harmonics, bool) or not isinstance(harmonics, int) or \
+            not 0 <= harmonics <= MAX_HARMONICS:
+        raise ValueError(f"harmonics={harmonics!r} must be a whole number in [0, {MAX_HARMONICS}]")
+    for name, flag in (("previous_action", previous_action), ("mask_pressures", mask_pressures)):
+        if not isinstance(flag, bool):
+            raise ValueError(f"{name}={flag!r} must be true or false")
+    return float(limit_m_s), int(harmonics), previous_action, mask_pressures
+
+
+def check_action_kwargs(force_N: Any = 20.0, stiffness_rel: Any = 0.3) -> tuple[float, float]:
+    """Validated (force_N, stiffness_rel); ``ValueError`` names the bad one and its range."""
+    for name, value, hi in (("force_N", force_N, 200.0), ("stiffness_rel", stiffness_rel, 1.0)):
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value <= hi:
+            raise ValueError(f"{name}={value!r} must be a number in (0, {hi:g}]")
+    return float(force_N), float(stiffness_rel)
+
+
+def harmonic_basis(obs: np.ndarray, harmonics: int) -> np.ndarray:
+    """(…, 1 + 2h): [1, sin φ, cos φ, sin 2φ, cos 2φ, …] from the observed (sin φ, cos φ)."""
+    z1 = obs[..., OCOS] + 1j * obs[..., OSIN]
+    cols = [np.ones(obs.shape[:-1])]
+    z = np.ones(obs.shape[:-1], dtype=complex)
+    for _ in range(harmonics):
+        z = z * z1
+        cols += [z.imag, z.real]
+    return np.stack(cols, axis=-1)
 
 
 def integral_step(integ: np.ndarray, obs: np.ndarray, dt: float, limit: float) -> np.ndarray:
-    """I ← clip(I + (X̂ − X) dt, ±limit) for one observation (…, obs_dim) or a batch."""
-    return np.clip(integ + (obs[..., OXR] - obs[..., OX]) * dt, -limit, limit)
+    """I ← clip(I + (X̂ − X) · basis(φ) · dt, ±limit) for one observation or a batch.
+
+    ``integ`` has the integrals on its last axis (1 + 2h of them); h follows from its length."""
+    integ = np.asarray(integ, dtype=float)
+    basis = harmonic_basis(obs, (integ.shape[-1] - 1) // 2)
+    e = obs[..., OXR] - obs[..., OX]
+    return np.clip(integ + e[..., None] * basis * dt, -limit, limit)
 
 
-def features(obs: np.ndarray, integ: np.ndarray) -> np.ndarray:
-    """obs (n, d) + integral (n,) → (n, d + 3): [obs, X̂ − X, V̂ − V, I] as float32."""
-    return np.concatenate([obs, (obs[:, OXR] - obs[:, OX])[:, None],
-                           (obs[:, OVR] - obs[:, OV])[:, None], np.reshape(integ, (-1, 1))],
-                          axis=1).astype(np.float32)
+def features(obs: np.ndarray, integ: np.ndarray, prev_action: np.ndarray | None = None,
+             mask_pressures: bool = False) -> np.ndarray:
+    """obs (n, d) + integrals (n, m) [+ previous action (n, 2)] → (n, d + 2 + m [+ 2]):
+    [obs, X̂ − X, V̂ − V, I…, a_prev] as float32; ``mask_pressures`` zeroes the measured
+    pressures (the layout stays, so k̂ keeps its column)."""
+    if mask_pressures:
+        obs = obs.copy()
+        obs[:, OPE:OPF + 1] = 0.0
+    cols = [obs, (obs[:, OXR] - obs[:, OX])[:, None], (obs[:, OVR] - obs[:, OV])[:, None],
+            np.reshape(integ, (obs.shape[0], -1))]
+    if prev_action is not None:
+        cols.append(np.reshape(prev_action, (obs.shape[0], 2)))
+    return np.concatenate(cols, axis=1).astype(np.float32)
 
 
-def _augmented_space(space: spaces.Box, limit: float) -> spaces.Box:
-    extra_lo = np.array([-1.0, -20.0, -limit])
-    extra_hi = np.array([1.0, 20.0, limit])
+def _augmented_space(space: spaces.Box, limit: float, harmonics: int, previous_action: bool
+                     ) -> spaces.Box:
+    m = n_integrals(harmonics)
+    n_prev = 2 if previous_action else 0
+    extra_lo = np.array([-1.0, -20.0] + [-limit] * m + [-1.0] * n_prev)
+    extra_hi = np.array([1.0, 20.0] + [limit] * m + [1.0] * n_prev)
     return spaces.Box(np.concatenate([space.low, extra_lo]).astype(np.float32),
                       np.concatenate([space.high, extra_hi]).astype(np.float32),
                       dtype=np.float32)
 
 
 class TrackingErrorObservation(gym.Wrapper):
-    """Single env: observation + [X̂ − X, V̂ − V, ∫(X̂ − X) dt]; the integral restarts at 0."""
+    """Single env: observation + [X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…, (a_prev)]; integrals and
+    previous action restart at 0."""
 
-    def __init__(self, env: gym.Env, limit_m_s: float = 0.02) -> None:
+    def __init__(self, env: gym.Env, limit_m_s: float = 0.02, harmonics: int = 0,
+                 previous_action: bool = False, mask_pressures: bool = False) -> None:
         super().__init__(env)
-        if not limit_m_s > 0:
-            raise ValueError(f"limit_m_s={limit_m_s!r} must be > 0 m s")
-        self.limit = float(limit_m_s)
+        self.limit, self.harmonics, self.previous_action, self.mask_pressures = \
+            check_observation_kwargs(limit_m_s, harmonics, previous_action, mask_pressures)
         self.dt = float(env.unwrapped.cfg.dt_s)
-        self.observation_space = _augmented_space(env.observation_space, self.limit)
-        self.integ = 0.0
+        self.observation_space = _augmented_space(env.observation_space, self.limit,
+                                                  self.harmonics, self.previous_action)
+        self.integ = np.zeros(n_integrals(self.harmonics))
+        self.prev = np.zeros(2)
+
+    def _features(self, obs: np.ndarray) -> np.ndarray:
+        return features(obs[None], self.integ[None],
+                        self.prev[None] if self.previous_action else None, self.mask_pressures)[0]
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
-        self.integ = 0.0
-        return features(obs[None], self.integ)[0], info
+        self.integ = np.zeros(n_integrals(self.harmonics))
+        self.prev = np.zeros(2)
+        return self._features(obs), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         obs, r, te, tr, info = self.env.step(action)
-        self.integ = float(integral_step(np.float64(self.integ), obs, self.dt, self.limit))
-        return features(obs[None], self.integ)[0], r, te, tr, info
+        self.prev = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)  # as the env applied it
+        self.integ = integral_step(self.integ, obs, self.dt, self.limit)
+        return self._features(obs), r, te, tr, info
 
 
 class TrackingErrorVectorObservation(VectorWrapper):
     """Native vector env (same-step autoreset): the features of ``TrackingErrorObservation``."""
 
-    def __init__(self, env: VectorEnv, limit_m_s: float = 0.02) -> None:
+    def __init__(self, env: VectorEnv, limit_m_s: float = 0.02, harmonics: int = 0,
+                 previous_action: bool = False, mask_pressures: bool = False) -> None:
         super().__init__(env)
-        self.limit = float(limit_m_s)
+        self.limit, self.harmonics, self.previous_action, self.mask_pressures = \
+            check_observation_kwargs(limit_m_s, harmonics, previous_action, mask_pressures)
         self.dt = float(env.unwrapped.cfg.dt_s)
         self.single_observation_space = _augmented_space(env.single_observation_space,
-                                                         self.limit)
+                                                         self.limit, self.harmonics,
+                                                         self.previous_action)
         self.observation_space = batch_space(self.single_observation_space, env.num_envs)
-        self.integ = np.zeros(env.num_envs)
+        self.integ = np.zeros((env.num_envs, n_integrals(self.harmonics)))
+        self.prev = np.zeros((env.num_envs, 2))
+
+    def _features(self, obs: np.ndarray, integ: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        return features(obs, integ, prev if self.previous_action else None, self.mask_pressures)
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.integ[:] = 0.0
-        return self._augment(obs), info
+        self.prev[:] = 0.0
+        return self._features(obs, self.integ, self.prev), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
         obs, r, te, tr, info = self.env.step(actions)
+        self.prev = np.clip(np.asarray(actions, dtype=float).reshape(self.num_envs, 2), -1, 1)
         done = te | tr
-        if done.any():  # the finished episodes' integral goes with their final observation
-            final = info["final_obs"].copy()
+        if done.any():  # the finished episodes' features go with their final observation
+            final = info["final_obs"].copy()  # an object array, None where not done
             for i in np.flatnonzero(done):
                 last = integral_step(self.integ[i], final[i], self.dt, self.limit)
-                final[i] = features(final[i][None], last)[0]
+                final[i] = self._features(final[i][None], last[None], self.prev[i][None])[0]
             info["final_obs"] = final
         self.integ = integral_step(self.integ, obs, self.dt, self.limit)
         self.integ[done] = 0.0  # the returned obs of a finished env starts a new episode
-        return self._augment(obs), r, te, tr, info
+        self.prev[done] = 0.0
+        return self._features(obs, self.integ, self.prev), r, te, tr, info
 
-    def _augment(self, obs: np.ndarray) -> np.ndarray:
-        return features(obs, self.integ)
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _force_stiffness_kernel(a, x_ref, k_ref, force_N, stiffness_rel, scale_pa, c, out):
+    for i in range(a.shape[0]):
+        x = x_ref[i]
+        F0, k0 = fast.force_and_stiffness(x, 0.0, 0.0, 0.0, c)
+        Fe, ke = fast.force_and_stiffness(x, 0.0, BAR, 0.0, c)
+        Ff, kf = fast.force_and_stiffness(x, 0.0, 0.0, BAR, c)
+        j11, j12, j21, j22 = (Fe - F0) / BAR, (Ff - F0) / BAR, (ke - k0) / BAR, (kf - k0) / BAR
+        dF = min(max(a[i, 0], -1.0), 1.0) * force_N
+        dk = min(max(a[i, 1], -1.0), 1.0) * stiffness_rel * k_ref[i]
+        det = j11 * j22 - j12 * j21
+        out[i, 0] = min(max((dF * j22 - j12 * dk) / det / scale_pa, -1.0), 1.0)
+        out[i, 1] = min(max((j11 * dk - j21 * dF) / det / scale_pa, -1.0), 1.0)
+
+
+def force_stiffness_to_residual(action: np.ndarray, obs: np.ndarray, force_N: float,
+                                stiffness_rel: float, scale_bar: float,
+                                params: Params = DEFAULT_PARAMS) -> np.ndarray:
+    """(n, 2) (a_F, a_k) in [−1, 1] → the residual action (a_e, a_f) of ``MPALegResidual-v0``.
+
+    Solves J(X̂) ΔP = (a_F · force_N, a_k · stiffness_rel · k̂) on the nominal model, at the
+    observed reference position (noise-free, and where the feedforward holds the leg), with J the
+    coefficients of ``affine_in_pressures`` (compiled here: it runs every control step), and
+    returns ΔP / residual scale clipped to [−1, 1]."""
+    a = np.asarray(action, dtype=np.float64).reshape(-1, 2)
+    out = np.empty((a.shape[0], 2))
+    _force_stiffness_kernel(a, np.asarray(obs[:, OXR], dtype=np.float64),
+                            np.asarray(obs[:, OK], dtype=np.float64) * 1000.0, float(force_N),
+                            float(stiffness_rel), float(scale_bar) * BAR, _constants(params),
+                            out)
+    return out.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=8)
+def _constants(params: Params) -> np.ndarray:
+    return fast.pack(params)
+
+
+def _residual_scale(env: Any) -> float:
+    unwrapped = env.unwrapped
+    if not getattr(unwrapped, "residual", False):
+        raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and the "
+                         "k̂ observation)")
+    return float(unwrapped.cfg.residual_scale_bar)
+
+
+class ForceStiffnessAction(gym.Wrapper):
+    """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs)."""
+
+    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3) -> None:
+        super().__init__(env)
+        self.force_N, self.stiffness_rel = check_action_kwargs(force_N, stiffness_rel)
+        self.scale_bar = _residual_scale(env)
+        self._obs: np.ndarray | None = None
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self._obs = np.asarray(obs)
+        return obs, info
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        a = check_action(action)
+        residual = force_stiffness_to_residual(a[None], self._obs[None], self.force_N,
+                                               self.stiffness_rel, self.scale_bar)[0]
+        obs, r, te, tr, info = self.env.step(residual)
+        self._obs = np.asarray(obs)
+        return obs, r, te, tr, info
+
+
+class ForceStiffnessVectorAction(VectorWrapper):
+    """Native vector env: the action coordinates of ``ForceStiffnessAction``."""
+
+    def __init__(self, env: VectorEnv, force_N: float = 20.0, stiffness_rel: float = 0.3
+                 ) -> None:
+        super().__init__(env)
+        self.force_N, self.stiffness_rel = check_action_kwargs(force_N, stiffness_rel)
+        self.scale_bar = _residual_scale(env)
+        self._obs: np.ndarray | None = None
+
+    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(**kwargs)
+        self._obs = np.asarray(obs)
+        return obs, info
+
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                          dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        a = check_action(actions, self.num_envs)
+        residual = force_stiffness_to_residual(a, self._obs, self.force_N, self.stiffness_rel,
+                                               self.scale_bar)
+        obs, r, te, tr, info = self.env.step(residual)
+        self._obs = np.asarray(obs)  # same-step autoreset: a new episode's first observation
+        return obs, r, te, tr, info

@@ -15,7 +15,12 @@ from agents.config import ConfigError, load_config, parse_config
 from agents.evaluate import evaluate, metrics, run_episode, write_report
 from agents.policies import load_run
 from agents.train import train
-from agents.wrappers import TrackingErrorObservation, TrackingErrorVectorObservation
+from agents.wrappers import (
+    ForceStiffnessAction,
+    TrackingErrorObservation,
+    TrackingErrorVectorObservation,
+    force_stiffness_to_residual,
+)
 from mpa_gym.analysis.scenario import load_scenario
 
 SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
@@ -108,16 +113,42 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     # the model and the saved normaliser give directly
     policy, cfg = load_run(run)
     assert cfg.integral_observation and policy.integral_limit == 0.02
+    assert policy.mask_pressures and policy.force_stiffness is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
     r2 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
     assert r1 == r2
-    raw = gym.make("MPALegResidual-v0").reset(seed=0)[0]
-    obs = TrackingErrorObservation(gym.make("MPALegResidual-v0")).reset(seed=0)[0]
-    direct, _ = policy.model.predict(policy.normalizer.normalize_obs(obs[None]),
-                                     deterministic=True)
-    via, _ = policy.predict(raw, None, np.array([True]))
-    np.testing.assert_array_equal(direct[0], via)
+    # step by step, the loaded policy (raw observations in, its own state) acts as the model on
+    # the training wrappers' observations, mapped to the env's residual action
+    assert cfg.observation_wrapper is not None and cfg.action_wrapper is not None
+    task = {k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"}
+    raw = _LastObservation(gym.make("MPALegResidual-v0", scenario=SHORT, task=task))
+    env = ForceStiffnessAction(TrackingErrorObservation(raw, **cfg.observation_wrapper),
+                               **cfg.action_wrapper)
+    obs, _ = env.reset(seed=0)
+    state, start = None, np.array([True])
+    for _ in range(60):
+        direct, _ = policy.model.predict(policy.normalizer.normalize_obs(obs[None]),
+                                         deterministic=True)
+        via, state = policy.predict(raw.last, state, start)
+        start = np.array([False])
+        np.testing.assert_array_equal(
+            via, force_stiffness_to_residual(direct, obs[None], env.force_N, env.stiffness_rel,
+                                             env.scale_bar)[0])
+        obs, *_ = env.step(direct[0])
+    assert np.all(raw.last[6:8] > 0) and np.all(obs[6:8] == 0)  # the model saw them masked
+
+
+class _LastObservation(gym.Wrapper):
+    """Keeps the env's own last observation (what a deployed policy is given)."""
+
+    def reset(self, **kwargs):
+        self.last, info = self.env.reset(**kwargs)
+        return self.last, info
+
+    def step(self, action):
+        self.last, *rest = self.env.step(action)
+        return self.last, *rest
 
 
 def test_resume_continues_the_step_count(tmp_path):
@@ -142,6 +173,14 @@ def test_resume_continues_the_step_count(tmp_path):
      ({"policy_kwargs": "dict(net_arch=__import__('os'))"}, r"only literals"),
      ({"batch_size": 10_000}, r"batch_size=10000 must be <= n_steps \* n_envs"),
      ({"env_wrapper": "os.system"}, r"env_wrapper='os.system': allowed"),
+     ({"env_wrapper": [{"agents.wrappers.TrackingErrorObservation": {"harmonic": 1}}]},
+      r"TrackingErrorObservation: unknown key\(s\) \['harmonic'\]"),
+     ({"env_wrapper": [{"agents.wrappers.TrackingErrorObservation": {"harmonics": 9}}]},
+      r"harmonics=9 must be a whole number in \[0, 5\]"),
+     ({"env_wrapper": [{"agents.wrappers.ForceStiffnessAction": {"force_N": 0}}]},
+      r"ForceStiffnessAction: force_N=0 must be a number in \(0, 200\]"),
+     ({"env_wrapper": ["agents.wrappers.ForceStiffnessAction",
+                       "agents.wrappers.ForceStiffnessAction"]}, "given twice"),
      ({"learning_rate": "fast"}, r"learning_rate='fast' must be a number or 'lin_<number>'"),
      ({"env_kwargs": {"scenery": 1}}, r"env_kwargs=.*allowed keys are \['scenario'")],
 )
@@ -160,6 +199,9 @@ def test_config_structure_errors():
                       "mpa_gym": {"sed": 1}})
     cfg = load_config("configs/ppo_scratch.yaml")
     assert cfg.env_id == "MPALeg-v0" and cfg.policy_kwargs["net_arch"] == [64, 64]
+    with pytest.raises(ConfigError, match="ForceStiffnessAction needs MPALegResidual-v0"):
+        parse_config({"MPALeg-v0": {"policy": "MlpPolicy", "n_timesteps": 10,
+                                    "env_wrapper": "agents.wrappers.ForceStiffnessAction"}})
 
 
 def test_report_files(tmp_path):

@@ -1,0 +1,161 @@
+"""Policy-side wrappers: harmonic integral features and force–stiffness action coordinates,
+checked by identities (orthogonality of the harmonic basis over a period, exact affinity of F and
+k in the pressures, round trips through the nominal model)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import mpa_gym  # noqa: F401  (registers the env ids)
+from agents.wrappers import (
+    ForceStiffnessAction,
+    ForceStiffnessVectorAction,
+    TrackingErrorObservation,
+    TrackingErrorVectorObservation,
+    force_stiffness_to_residual,
+    harmonic_basis,
+    integral_step,
+)
+from mpa_gym.design import affine_in_pressures
+from mpa_gym.model.dynamics import force_terms
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS
+
+SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
+
+
+def test_pressures_enter_force_and_stiffness_affinely():
+    # F and k are exactly affine in (P'_e, P'_f) at fixed (X, V): the three-point coefficients
+    # reproduce force_terms at arbitrary pressures (only rounding remains).
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.72, 0.85, 50)
+    v = rng.uniform(-0.1, 0.1, 50)
+    p = rng.uniform(0.0, 7.0, (50, 2)) * BAR
+    c = affine_in_pressures(x, v)
+    t = force_terms(x, v, p[:, 0], p[:, 1], DEFAULT_PARAMS)
+    np.testing.assert_allclose(c.F0 + np.einsum("nj,nj->n", c.J[:, 0], p), t.F,
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(c.k0 + np.einsum("nj,nj->n", c.J[:, 1], p), -t.dF_dX,
+                               rtol=1e-9, atol=1e-7)
+
+
+def test_harmonic_integrals_are_fourier_coefficients_over_a_period():
+    # e = c0 + c1 sin φ + c2 cos φ + c3 sin 2φ integrated over one period T with step dt:
+    # I_0 = c0 T, I_s1 = c1 T/2, I_c1 = c2 T/2, I_s2 = c3 T/2 (orthogonality; the rectangle
+    # rule is exact for trigonometric polynomials of degree < N on N equispaced points).
+    T, n = 3.0, 300
+    dt = T / n
+    c0, c1, c2, c3 = 1e-3, -2e-3, 0.5e-3, 0.7e-3
+    integ = np.zeros(5)
+    for i in range(n):
+        phi = 2 * np.pi * i / n
+        e = c0 + c1 * np.sin(phi) + c2 * np.cos(phi) + c3 * np.sin(2 * phi)
+        obs = np.zeros(9)
+        obs[2], obs[4], obs[5] = e, np.sin(phi), np.cos(phi)  # X = 0, X̂ = e
+        integ = integral_step(integ, obs, dt, 1.0)
+    np.testing.assert_allclose(integ, [c0 * T, c1 * T / 2, c2 * T / 2, c3 * T / 2, 0.0],
+                               atol=1e-15)
+    # the basis itself: [1, sin φ, cos φ, sin 2φ, cos 2φ]
+    obs = np.zeros(9)
+    obs[4], obs[5] = np.sin(0.3), np.cos(0.3)
+    np.testing.assert_allclose(harmonic_basis(obs, 2),
+                               [1, np.sin(0.3), np.cos(0.3), np.sin(0.6), np.cos(0.6)],
+                               rtol=1e-15)
+
+
+def test_integrals_are_clipped_to_the_anti_windup_limit():
+    obs = np.zeros(9)
+    obs[2], obs[5] = 0.5, 1.0  # a 0.5 m error at φ = 0
+    integ = integral_step(np.zeros(3), obs, 0.01, 0.02)
+    integ = integral_step(integ, obs, 0.01, 0.02)
+    np.testing.assert_array_equal(integ, [0.01, 0.0, 0.01])
+    for _ in range(10):
+        integ = integral_step(integ, obs, 0.01, 0.02)
+    np.testing.assert_array_equal(integ, [0.02, 0.0, 0.02])
+
+
+def test_force_stiffness_action_round_trips_through_the_nominal_model():
+    # the residual it returns changes the nominal model's F by a_F·force_N and k by
+    # a_k·rel·k̂ at the reference position (inside the clip range)
+    rng = np.random.default_rng(2)
+    obs = np.zeros((20, 9))
+    obs[:, 2] = rng.uniform(0.78, 0.82, 20)
+    obs[:, 8] = rng.uniform(0.4, 0.6, 20)  # k̂ [kN/m]
+    a = rng.uniform(-0.5, 0.5, (20, 2))
+    scale = 1.5
+    res = force_stiffness_to_residual(a, obs, 20.0, 0.3, scale)
+    assert np.all(np.abs(res) < 1.0)  # not clipped
+    J = affine_in_pressures(obs[:, 2], np.zeros(20)).J
+    dp = res.astype(float) * scale * BAR
+    dF, dk = np.einsum("nij,nj->ni", J, dp).T
+    # float32 actions: 6e-8 relative of a residual ≤ 1.5 bar
+    np.testing.assert_allclose(dF, a[:, 0] * 20.0, atol=1e-4)
+    np.testing.assert_allclose(dk, a[:, 1] * 0.3 * obs[:, 8] * 1000.0, atol=1e-3)
+    # a force correction alone leaves the nominal stiffness unchanged
+    res_f = force_stiffness_to_residual(np.c_[a[:, 0], np.zeros(20)], obs, 20.0, 0.3, scale)
+    dk_f = np.einsum("nj,nj->n", J[:, 1], res_f.astype(float) * scale * BAR)
+    np.testing.assert_allclose(dk_f, 0.0, atol=1e-3)
+
+
+def test_zero_force_stiffness_action_is_the_feedforward_expert():
+    env = ForceStiffnessAction(gym.make("MPALegResidual-v0", task={"episode_s": 0.5}))
+    plain = gym.make("MPALegResidual-v0", task={"episode_s": 0.5})
+    o1, _ = env.reset(seed=1)
+    o2, _ = plain.reset(seed=1)
+    for _ in range(50):
+        o1, r1, *_ = env.step(np.zeros(2))
+        o2, r2, *_ = plain.step(np.zeros(2))
+        np.testing.assert_array_equal(o1, o2)
+        assert r1 == r2
+
+
+def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
+    with pytest.raises(ValueError, match="needs MPALegResidual-v0"):
+        ForceStiffnessAction(gym.make("MPALeg-v0"))
+    with pytest.raises(ValueError, match=r"force_N=-1 must be a number in \(0, 200\]"):
+        ForceStiffnessAction(gym.make("MPALegResidual-v0"), force_N=-1)
+    env = ForceStiffnessAction(gym.make("MPALegResidual-v0"))
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros(2))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="must be finite"):
+        env.step(np.array([np.nan, 0.0]))
+    with pytest.raises(ValueError, match=r"shape \(3,\)"):
+        env.step(np.zeros(3))
+
+
+@pytest.mark.parametrize(("harmonics", "previous_action", "mask"),
+                         [(0, False, False), (1, True, False), (2, True, True), (0, False, True)])
+def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask):
+    # observation features and action coordinates, across a same-step autoreset
+    kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
+    single = ForceStiffnessAction(TrackingErrorObservation(
+        gym.make("MPALegResidual-v0", **kw), harmonics=harmonics,
+        previous_action=previous_action, mask_pressures=mask))
+    vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
+        "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
+        harmonics=harmonics, previous_action=previous_action, mask_pressures=mask))
+    m = 1 + 2 * harmonics
+    d = 9 + 2 + m + (2 if previous_action else 0)
+    so, _ = single.reset(seed=4)
+    vo, _ = vec.reset(seed=4)
+    assert so.shape == (d,) and vo.shape == (2, d)
+    assert vec.single_observation_space.contains(vo[0])
+    np.testing.assert_array_equal(so, vo[0])
+    rng = np.random.default_rng(1)
+    for _ in range(45):  # crosses the 30-step episode end
+        a = rng.uniform(-1, 1, (2, 2))
+        applied = force_stiffness_to_residual(a[:1], so[None], single.force_N,
+                                              single.stiffness_rel, single.scale_bar)[0]
+        so, _, te, tr, _ = single.step(a[0])
+        vo, _, _, _, vinfo = vec.step(a)
+        assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
+        if previous_action:  # the residual the env applied, in its action units
+            np.testing.assert_array_equal(so[-2:], applied)
+        if te or tr:
+            np.testing.assert_array_equal(so, vinfo["final_obs"][0])
+            so, _ = single.reset()
+            assert not np.any(so[11:])  # integrals and previous action restart
+        np.testing.assert_array_equal(so, vo[0])
+    assert np.all(np.any(vo[:, 11:11 + m] != 0.0, axis=0))  # every integral moves
