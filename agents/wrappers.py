@@ -11,11 +11,11 @@ each clipped to ±``limit_m_s`` (anti-windup), φ the reference phase the env ob
 PID's integrator; the harmonic pairs are the internal model of a periodic reference (a resonant
 controller's integrators): they hold whatever periodic correction the plant needs, so a policy can
 cancel a periodic error — and the in-phase part, a force error that follows X̂ − X_0, is a
-stiffness error the policy can correct. With ``previous_action`` the action the env was last
-given is appended too: the measured pressures mix the policy's own last command with the
-regulator's lag, and only with the command known can a policy tell them apart (without it, a
-policy that learned to overdrive lagging regulators chatters on a lag-free one). All are what a
-controller computes from its measurements and its own commands, never a plant parameter.
+stiffness error the policy can correct. ``mask_pressures`` zeroes the measured pressures (the
+layout stays): they echo the policy's own last command, and a policy that learned to overdrive
+lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
+action the env was last given instead, the other way to tell the command from the lag. All are
+what a controller computes from its measurements and its own commands, never a plant parameter.
 
 Action: ``ForceStiffnessAction`` lets the policy act in the coordinates the task is posed in: a
 ground-force correction ΔF = a_F · ``force_N`` and a stiffness correction Δk = a_k ·
