@@ -197,7 +197,9 @@ def _wrappers(spec: Any, env_id: str, where: str) -> dict[str, dict[str, Any]]:
     """rl-zoo's ``env_wrapper``: a name, ``{name: kwargs}``, or a list of those → {name: kwargs}.
 
     The kwargs are checked here, so a typo fails before training starts."""
-    from agents.wrappers import check_action_kwargs, check_observation_kwargs
+    import dataclasses
+
+    from agents.wrappers import FeatureSpec, check_action_kwargs
 
     if spec is None:
         return {}
@@ -215,10 +217,9 @@ def _wrappers(spec: Any, env_id: str, where: str) -> dict[str, dict[str, Any]]:
             raise ConfigError(f"{where}: {name} is given twice")
         if not isinstance(kwargs, dict):
             raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")
-        check, allowed = ((check_observation_kwargs, ("limit_m_s", "harmonics", "previous_action",
-                                                     "mask_pressures"))
+        check, allowed = ((FeatureSpec, [f.name for f in dataclasses.fields(FeatureSpec)])
                           if name == OBS_WRAPPER else
-                          (check_action_kwargs, ("force_N", "stiffness_rel")))
+                          (check_action_kwargs, ["force_N", "stiffness_rel"]))
         unknown = sorted(set(kwargs) - set(allowed))
         if unknown:
             raise ConfigError(f"{where}: {name}: unknown key(s) {unknown}; allowed keys are "

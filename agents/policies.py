@@ -11,50 +11,43 @@ import numpy as np
 from agents.baselines import BASELINES, Policy, make_baseline
 from agents.config import TrainConfig
 from agents.wrappers import (
+    FeatureSpec,
     check_action_kwargs,
-    check_observation_kwargs,
-    features,
     force_stiffness_to_residual,
     integral_step,
-    n_integrals,
 )
 from mpa_gym.task.config import TaskConfig
 
 
 class LearnedPolicy:
-    """An SB3 model with its observation normaliser, integral-error state and action coordinates.
+    """An SB3 model with its observation normaliser, feature state and action coordinates.
 
     ``predict`` takes the env's own observation (as the baselines do): it appends the tracking
-    error features when the model was trained with ``TrackingErrorObservation`` (their integrals
-    are the returned state), normalises with the training statistics, and returns the
-    deterministic action — mapped from force–stiffness coordinates to the env's residual action
-    when the model was trained with ``ForceStiffnessAction``.
+    error features when the model was trained with ``TrackingErrorObservation`` (``features``;
+    their integrals and the previous action are the returned state), normalises with the
+    training statistics, and returns the deterministic action — mapped from force–stiffness
+    coordinates to the env's residual action when the model was trained with
+    ``ForceStiffnessAction`` (``force_stiffness`` = (force_N, stiffness_rel, residual scale)).
     """
 
-    def __init__(self, model: Any, normalizer: Any = None, integral_limit: float | None = None,
-                 dt: float = 0.01, harmonics: int = 0, previous_action: bool = False,
-                 force_stiffness: tuple[float, float, float] | None = None,
-                 mask_pressures: bool = False) -> None:
-        self.model, self.normalizer = model, normalizer
-        self.integral_limit, self.dt = integral_limit, dt
-        self.harmonics, self.previous_action = harmonics, previous_action
-        self.mask_pressures = mask_pressures
-        self.force_stiffness = force_stiffness  # (force_N, stiffness_rel, residual scale [bar])
+    def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
+                 dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None
+                 ) -> None:
+        self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
+        self.force_stiffness = force_stiffness
 
     @classmethod
     def from_config(cls, model: Any, normalizer: Any, cfg: TrainConfig) -> LearnedPolicy:
         """The policy for a model trained with ``cfg``'s wrappers and task."""
         task = cfg.env_kwargs.get("task") or {}
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
-        limit, harmonics, prev, mask = (check_observation_kwargs(**ow) if ow is not None else
-                                        (None, 0, False, False))
         fs = None
         if aw is not None:
             scale = TaskConfig.from_kwargs({k: v for k, v in task.items()
                                             if k != "episode_s"}).residual_scale_bar
             fs = (*check_action_kwargs(**aw), scale)
-        return cls(model, normalizer, limit, float(task.get("dt_s", 0.01)), harmonics, prev, fs,
-                   mask)
+        return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
+                   float(task.get("dt_s", 0.01)), fs)
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -64,23 +57,22 @@ class LearnedPolicy:
         raw = np.asarray(observation, dtype=np.float32)
         single = raw.ndim == 1
         raw = raw.reshape(1, -1) if single else raw
-        obs, n, m = raw, raw.shape[0], n_integrals(self.harmonics)
-        if self.integral_limit is not None:
+        obs, spec = raw, self.features
+        if spec is not None:
+            n, m = raw.shape[0], spec.n_integrals
             st = np.zeros((n, m + 2)) if state is None else np.array(state, float).reshape(n, -1)
             if state is not None:
-                st[:, :m] = integral_step(st[:, :m], raw, self.dt, self.integral_limit)
+                st[:, :m] = integral_step(st[:, :m], raw, self.dt, spec.limit_m_s)
             if episode_start is not None:
                 st[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
-            obs = features(raw, st[:, :m], st[:, m:] if self.previous_action else None,
-                           self.mask_pressures)
-            state = st
+            obs, state = spec.features(raw, st[:, :m], st[:, m:]), st
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action, _ = self.model.predict(obs, deterministic=deterministic)
         if self.force_stiffness is not None:
             action = force_stiffness_to_residual(action, raw, *self.force_stiffness)
-        if state is not None:
-            state[:, m:] = np.clip(action, -1.0, 1.0)  # what the env applies
+        if spec is not None:
+            state[:, spec.n_integrals:] = np.clip(action, -1.0, 1.0)  # what the env applies
         return (action[0] if single else action), state
 
 

@@ -31,6 +31,7 @@ the native vector env (same-step autoreset). Both use the module's functions, so
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from typing import Any
 
 import gymnasium as gym
@@ -53,21 +54,62 @@ def n_integrals(harmonics: int) -> int:
     return 1 + 2 * harmonics
 
 
-def check_observation_kwargs(limit_m_s: Any = 0.02, harmonics: Any = 0,
-                             previous_action: Any = False, mask_pressures: Any = False
-                             ) -> tuple[float, int, bool, bool]:
-    """Validated (limit_m_s, harmonics, previous_action, mask_pressures); ``ValueError`` names
-    the bad one and its range."""
-    if isinstance(limit_m_s, bool) or not isinstance(limit_m_s, int | float) or \
-            not 0 < limit_m_s <= 1.0:
-        raise ValueError(f"limit_m_s={limit_m_s!r} must be a number in (0, 1] m s")
-    if isinstance(harmonics, bool) or not isinstance(harmonics, int) or \
-            not 0 <= harmonics <= MAX_HARMONICS:
-        raise ValueError(f"harmonics={harmonics!r} must be a whole number in [0, {MAX_HARMONICS}]")
-    for name, flag in (("previous_action", previous_action), ("mask_pressures", mask_pressures)):
-        if not isinstance(flag, bool):
-            raise ValueError(f"{name}={flag!r} must be true or false")
-    return float(limit_m_s), int(harmonics), previous_action, mask_pressures
+@dataclass(frozen=True)
+class FeatureSpec:
+    """What ``TrackingErrorObservation`` appends (its kwargs; module docstring)."""
+
+    limit_m_s: float = 0.02  # [m s] anti-windup bound of the integrals
+    harmonics: int = 0  # harmonic integral pairs
+    previous_action: bool = False  # append the action the env was last given
+    mask_pressures: bool = False  # zero the measured pressures
+    fine_error_m: float | None = None  # [m] also append clip(X̂ − X, ±this)
+
+    def __post_init__(self) -> None:
+        lim = self.limit_m_s
+        if isinstance(lim, bool) or not isinstance(lim, int | float) or not 0 < lim <= 1.0:
+            raise ValueError(f"limit_m_s={lim!r} must be a number in (0, 1] m s")
+        h = self.harmonics
+        if isinstance(h, bool) or not isinstance(h, int) or not 0 <= h <= MAX_HARMONICS:
+            raise ValueError(f"harmonics={h!r} must be a whole number in [0, {MAX_HARMONICS}]")
+        for name in ("previous_action", "mask_pressures"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}={getattr(self, name)!r} must be true or false")
+        f = self.fine_error_m
+        if f is not None and (isinstance(f, bool) or not isinstance(f, int | float) or
+                              not 0 < f <= 0.1):
+            raise ValueError(f"fine_error_m={f!r} must be null or a number in (0, 0.1] m")
+
+    @property
+    def n_integrals(self) -> int:
+        return n_integrals(self.harmonics)
+
+    def space(self, space: spaces.Box) -> spaces.Box:
+        """The observation space with the features appended."""
+        m, lim = self.n_integrals, self.limit_m_s
+        lo = [-1.0, -20.0] + [-lim] * m + [-1.0] * (2 * self.previous_action)
+        hi = [1.0, 20.0] + [lim] * m + [1.0] * (2 * self.previous_action)
+        if self.fine_error_m is not None:
+            lo.append(-self.fine_error_m)
+            hi.append(self.fine_error_m)
+        return spaces.Box(np.concatenate([space.low, lo]).astype(np.float32),
+                          np.concatenate([space.high, hi]).astype(np.float32), dtype=np.float32)
+
+    def features(self, obs: np.ndarray, integ: np.ndarray, prev_action: np.ndarray
+                 ) -> np.ndarray:
+        """obs (n, d), integrals (n, m), previous action (n, 2) → the features (n, d + …):
+        [obs (pressures zeroed if masked), X̂ − X, V̂ − V, I…, (a_prev), (fine error)], float32.
+        Masking keeps the layout, so k̂ keeps its column."""
+        n = obs.shape[0]
+        if self.mask_pressures:
+            obs = obs.copy()
+            obs[:, OPE:OPF + 1] = 0.0
+        e = obs[:, OXR] - obs[:, OX]
+        cols = [obs, e[:, None], (obs[:, OVR] - obs[:, OV])[:, None], np.reshape(integ, (n, -1))]
+        if self.previous_action:
+            cols.append(np.reshape(prev_action, (n, 2)))
+        if self.fine_error_m is not None:
+            cols.append(np.clip(e, -self.fine_error_m, self.fine_error_m)[:, None])
+        return np.concatenate(cols, axis=1).astype(np.float32)
 
 
 def check_action_kwargs(force_N: Any = 20.0, stiffness_rel: Any = 0.3) -> tuple[float, float]:
@@ -99,104 +141,69 @@ def integral_step(integ: np.ndarray, obs: np.ndarray, dt: float, limit: float) -
     return np.clip(integ + e[..., None] * basis * dt, -limit, limit)
 
 
-def features(obs: np.ndarray, integ: np.ndarray, prev_action: np.ndarray | None = None,
-             mask_pressures: bool = False) -> np.ndarray:
-    """obs (n, d) + integrals (n, m) [+ previous action (n, 2)] → (n, d + 2 + m [+ 2]):
-    [obs, X̂ − X, V̂ − V, I…, a_prev] as float32; ``mask_pressures`` zeroes the measured
-    pressures (the layout stays, so k̂ keeps its column)."""
-    if mask_pressures:
-        obs = obs.copy()
-        obs[:, OPE:OPF + 1] = 0.0
-    cols = [obs, (obs[:, OXR] - obs[:, OX])[:, None], (obs[:, OVR] - obs[:, OV])[:, None],
-            np.reshape(integ, (obs.shape[0], -1))]
-    if prev_action is not None:
-        cols.append(np.reshape(prev_action, (obs.shape[0], 2)))
-    return np.concatenate(cols, axis=1).astype(np.float32)
-
-
-def _augmented_space(space: spaces.Box, limit: float, harmonics: int, previous_action: bool
-                     ) -> spaces.Box:
-    m = n_integrals(harmonics)
-    n_prev = 2 if previous_action else 0
-    extra_lo = np.array([-1.0, -20.0] + [-limit] * m + [-1.0] * n_prev)
-    extra_hi = np.array([1.0, 20.0] + [limit] * m + [1.0] * n_prev)
-    return spaces.Box(np.concatenate([space.low, extra_lo]).astype(np.float32),
-                      np.concatenate([space.high, extra_hi]).astype(np.float32),
-                      dtype=np.float32)
-
-
 class TrackingErrorObservation(gym.Wrapper):
-    """Single env: observation + [X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…, (a_prev)]; integrals and
-    previous action restart at 0."""
+    """Single env: observation + [X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…, (a_prev), (fine error)];
+    integrals and previous action restart at 0. kwargs: the fields of ``FeatureSpec``."""
 
-    def __init__(self, env: gym.Env, limit_m_s: float = 0.02, harmonics: int = 0,
-                 previous_action: bool = False, mask_pressures: bool = False) -> None:
+    def __init__(self, env: gym.Env, **kwargs: Any) -> None:
         super().__init__(env)
-        self.limit, self.harmonics, self.previous_action, self.mask_pressures = \
-            check_observation_kwargs(limit_m_s, harmonics, previous_action, mask_pressures)
+        self.feature_spec = FeatureSpec(**kwargs)
         self.dt = float(env.unwrapped.cfg.dt_s)
-        self.observation_space = _augmented_space(env.observation_space, self.limit,
-                                                  self.harmonics, self.previous_action)
-        self.integ = np.zeros(n_integrals(self.harmonics))
+        self.observation_space = self.feature_spec.space(env.observation_space)
+        self.integ = np.zeros(self.feature_spec.n_integrals)
         self.prev = np.zeros(2)
 
     def _features(self, obs: np.ndarray) -> np.ndarray:
-        return features(obs[None], self.integ[None],
-                        self.prev[None] if self.previous_action else None, self.mask_pressures)[0]
+        return self.feature_spec.features(obs[None], self.integ[None], self.prev[None])[0]
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
-        self.integ = np.zeros(n_integrals(self.harmonics))
+        self.integ = np.zeros(self.feature_spec.n_integrals)
         self.prev = np.zeros(2)
         return self._features(obs), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         obs, r, te, tr, info = self.env.step(action)
         self.prev = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)  # as the env applied it
-        self.integ = integral_step(self.integ, obs, self.dt, self.limit)
+        self.integ = integral_step(self.integ, obs, self.dt, self.feature_spec.limit_m_s)
         return self._features(obs), r, te, tr, info
 
 
 class TrackingErrorVectorObservation(VectorWrapper):
     """Native vector env (same-step autoreset): the features of ``TrackingErrorObservation``."""
 
-    def __init__(self, env: VectorEnv, limit_m_s: float = 0.02, harmonics: int = 0,
-                 previous_action: bool = False, mask_pressures: bool = False) -> None:
+    def __init__(self, env: VectorEnv, **kwargs: Any) -> None:
         super().__init__(env)
-        self.limit, self.harmonics, self.previous_action, self.mask_pressures = \
-            check_observation_kwargs(limit_m_s, harmonics, previous_action, mask_pressures)
+        self.feature_spec = FeatureSpec(**kwargs)
         self.dt = float(env.unwrapped.cfg.dt_s)
-        self.single_observation_space = _augmented_space(env.single_observation_space,
-                                                         self.limit, self.harmonics,
-                                                         self.previous_action)
+        self.single_observation_space = self.feature_spec.space(env.single_observation_space)
         self.observation_space = batch_space(self.single_observation_space, env.num_envs)
-        self.integ = np.zeros((env.num_envs, n_integrals(self.harmonics)))
+        self.integ = np.zeros((env.num_envs, self.feature_spec.n_integrals))
         self.prev = np.zeros((env.num_envs, 2))
-
-    def _features(self, obs: np.ndarray, integ: np.ndarray, prev: np.ndarray) -> np.ndarray:
-        return features(obs, integ, prev if self.previous_action else None, self.mask_pressures)
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.integ[:] = 0.0
         self.prev[:] = 0.0
-        return self._features(obs, self.integ, self.prev), info
+        return self.feature_spec.features(obs, self.integ, self.prev), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
         obs, r, te, tr, info = self.env.step(actions)
         self.prev = np.clip(np.asarray(actions, dtype=float).reshape(self.num_envs, 2), -1, 1)
+        spec = self.feature_spec
+        limit = spec.limit_m_s
         done = te | tr
         if done.any():  # the finished episodes' features go with their final observation
             final = info["final_obs"].copy()  # an object array, None where not done
             for i in np.flatnonzero(done):
-                last = integral_step(self.integ[i], final[i], self.dt, self.limit)
-                final[i] = self._features(final[i][None], last[None], self.prev[i][None])[0]
+                last = integral_step(self.integ[i], final[i], self.dt, limit)
+                final[i] = spec.features(final[i][None], last[None], self.prev[i][None])[0]
             info["final_obs"] = final
-        self.integ = integral_step(self.integ, obs, self.dt, self.limit)
+        self.integ = integral_step(self.integ, obs, self.dt, limit)
         self.integ[done] = 0.0  # the returned obs of a finished env starts a new episode
         self.prev[done] = 0.0
-        return self._features(obs, self.integ, self.prev), r, te, tr, info
+        return self.feature_spec.features(obs, self.integ, self.prev), r, te, tr, info
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

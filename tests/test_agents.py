@@ -16,6 +16,7 @@ from agents.evaluate import evaluate, metrics, run_episode, write_report
 from agents.policies import load_run
 from agents.train import train
 from agents.wrappers import (
+    FeatureSpec,
     ForceStiffnessAction,
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
@@ -112,8 +113,8 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     # the loaded policy (model + normaliser) evaluates to the same numbers twice, and to what
     # the model and the saved normaliser give directly
     policy, cfg = load_run(run)
-    assert cfg.integral_observation and policy.integral_limit == 0.02
-    assert policy.mask_pressures and policy.force_stiffness is not None
+    assert cfg.integral_observation and policy.features == FeatureSpec(**cfg.observation_wrapper)
+    assert policy.features.mask_pressures and policy.force_stiffness is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
     r2 = evaluate([str(run)], [sc])["results"]["ev"]["run"]

@@ -125,19 +125,21 @@ def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
         env.step(np.zeros(3))
 
 
-@pytest.mark.parametrize(("harmonics", "previous_action", "mask"),
-                         [(0, False, False), (1, True, False), (2, True, True), (0, False, True)])
-def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask):
+@pytest.mark.parametrize(("harmonics", "previous_action", "mask", "fine"),
+                         [(0, False, False, None), (1, True, False, None), (2, True, True, 1e-3),
+                          (0, False, True, 5e-4)])
+def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine):
     # observation features and action coordinates, across a same-step autoreset
     kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
     single = ForceStiffnessAction(TrackingErrorObservation(
         gym.make("MPALegResidual-v0", **kw), harmonics=harmonics,
-        previous_action=previous_action, mask_pressures=mask))
+        previous_action=previous_action, mask_pressures=mask, fine_error_m=fine))
     vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
         "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
-        harmonics=harmonics, previous_action=previous_action, mask_pressures=mask))
+        harmonics=harmonics, previous_action=previous_action, mask_pressures=mask,
+        fine_error_m=fine))
     m = 1 + 2 * harmonics
-    d = 9 + 2 + m + (2 if previous_action else 0)
+    d = 9 + 2 + m + (2 if previous_action else 0) + (1 if fine else 0)
     so, _ = single.reset(seed=4)
     vo, _ = vec.reset(seed=4)
     assert so.shape == (d,) and vo.shape == (2, d)
@@ -152,7 +154,9 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask):
         vo, _, _, _, vinfo = vec.step(a)
         assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
         if previous_action:  # the residual the env applied, in its action units
-            np.testing.assert_array_equal(so[-2:], applied)
+            np.testing.assert_array_equal(so[11 + m:13 + m], applied)
+        if fine:  # the error again, clipped to ±fine
+            assert so[-1] == np.float32(np.clip(so[9], -fine, fine))
         if te or tr:
             np.testing.assert_array_equal(so, vinfo["final_obs"][0])
             so, _ = single.reset()
