@@ -74,9 +74,6 @@ class TrainConfig:
     eval_seed: int = 1_000_000  # seeds of evaluation episodes (no training env uses them)
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
 
-    @property
-    def integral_observation(self) -> bool:
-        return self.observation_wrapper is not None
 
 
 def _literal(text: str, key: str) -> Any:

@@ -1,8 +1,9 @@
 """PPO training from an rl-zoo style config: `mpa-gym train [--config FILE] [--resume RUN_DIR]`.
 
-Reads top to bottom like CleanRL's scripts: build the native vector env (through the SB3
-adapter, integral-error observation if configured, VecMonitor, VecNormalize), the callbacks
-(held-out evaluation, checkpoints, tracking scalars for TensorBoard), the PPO model, then learn.
+Reads top to bottom like CleanRL's scripts: build the native vector env (the configured
+tracking-error features and force–stiffness actions, the SB3 adapter, VecMonitor, VecNormalize),
+the callbacks (held-out evaluation, checkpoints, tracking scalars for TensorBoard), the PPO model,
+then learn.
 A run folder holds ``config.yaml`` (the resolved config), ``model.zip``, ``vecnormalize.pkl``,
 ``eval/evaluations.npz`` + ``eval/evaluations.json``, ``best/``, ``checkpoints/`` and ``tb/``.
 Whatever happens (Ctrl-C included), the model and normaliser reached so far are saved.

@@ -14,7 +14,9 @@ cancel a periodic error — and the in-phase part, a force error that follows X�
 stiffness error the policy can correct. ``mask_pressures`` zeroes the measured pressures (the
 layout stays): they echo the policy's own last command, and a policy that learned to overdrive
 lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
-action the env was last given instead, the other way to tell the command from the lag. All are
+action the env was last given instead, the other way to tell the command from the lag;
+``fine_error_m`` appends the error clipped to ±δ, which VecNormalize then scales to the sub-
+millimetre band (the plain error's running std is set by millimetre transients). All are
 what a controller computes from its measurements and its own commands, never a plant parameter.
 
 Action: ``ForceStiffnessAction`` lets the policy act in the coordinates the task is posed in: a

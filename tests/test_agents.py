@@ -113,7 +113,7 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     # the loaded policy (model + normaliser) evaluates to the same numbers twice, and to what
     # the model and the saved normaliser give directly
     policy, cfg = load_run(run)
-    assert cfg.integral_observation and policy.features == FeatureSpec(**cfg.observation_wrapper)
+    assert policy.features == FeatureSpec(**cfg.observation_wrapper)
     assert policy.features.mask_pressures and policy.force_stiffness is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
