@@ -14,7 +14,7 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       policy_kwargs: "dict(net_arch=[64, 64], log_std_init=-2.0)"
       env_kwargs: {scenario: {...}, task: {...}}
       env_wrapper:
-        - agents.wrappers.TrackingErrorObservation: {harmonics: 1}
+        - agents.wrappers.TrackingErrorObservation: {mask_pressures: true}
         - agents.wrappers.ForceStiffnessAction: {force_N: 20.0, stiffness_rel: 0.3}
       learning_rate: !!float 3e-4
       ...
@@ -73,7 +73,6 @@ class TrainConfig:
     checkpoint_freq: int = 500_000  # env steps between checkpoints
     eval_seed: int = 1_000_000  # seeds of evaluation episodes (no training env uses them)
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
-
 
 
 def _literal(text: str, key: str) -> Any:

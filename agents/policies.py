@@ -43,8 +43,7 @@ class LearnedPolicy:
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
         fs = None
         if aw is not None:
-            scale = TaskConfig.from_kwargs({k: v for k, v in task.items()
-                                            if k != "episode_s"}).residual_scale_bar
+            scale = TaskConfig.from_kwargs(task).residual_scale_bar
             fs = (*check_action_kwargs(**aw), scale)
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
                    float(task.get("dt_s", 0.01)), fs)
