@@ -16,6 +16,7 @@ from mpa_gym.design import (
     StiffnessEnvelope,
     StiffnessProfile,
     affine_in_pf,
+    affine_in_pressures,
     constant_flexor,
     feasible_stiffness_range,
     joint_stiffness,
@@ -23,6 +24,7 @@ from mpa_gym.design import (
     stiffness_sweep,
 )
 from mpa_gym.model import ground_force
+from mpa_gym.model.dynamics import force_terms
 from mpa_gym.model.params import BAR
 from mpa_gym.model.params import DEFAULT_PARAMS as P
 
@@ -202,3 +204,18 @@ def test_bad_reference_names_field():
 def test_mode_must_be_one_of_table1():
     with pytest.raises(ValueError, match=r"mode=4 is not one of Table 1's modes \[1, 2, 3\]"):
         mode_pattern(4)
+
+
+def test_pressures_enter_force_and_stiffness_affinely():
+    # F and k are exactly affine in (P'_e, P'_f) at fixed (X, V): the three-point coefficients
+    # reproduce force_terms at arbitrary pressures (only rounding remains).
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.72, 0.85, 50)
+    v = rng.uniform(-0.1, 0.1, 50)
+    p = rng.uniform(0.0, 7.0, (50, 2)) * BAR
+    c = affine_in_pressures(x, v)
+    t = force_terms(x, v, p[:, 0], p[:, 1], P)
+    np.testing.assert_allclose(c.F0 + np.einsum("nj,nj->n", c.J[:, 0], p), t.F,
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(c.k0 + np.einsum("nj,nj->n", c.J[:, 1], p), -t.dF_dX,
+                               rtol=1e-9, atol=1e-7)
