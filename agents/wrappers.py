@@ -246,61 +246,59 @@ def _constants(params: Params) -> np.ndarray:
     return fast.pack(params)
 
 
-def _residual_scale(env: Any) -> float:
-    unwrapped = env.unwrapped
-    if not getattr(unwrapped, "residual", False):
-        raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and the "
-                         "k̂ observation)")
-    return float(unwrapped.cfg.residual_scale_bar)
+class _ForceStiffnessMap:
+    """What both force–stiffness wrappers share: the settings, the last observation (X̂ and k̂
+    for the map) and the reset that records it."""
 
+    env: Any
+    _obs: np.ndarray | None
 
-class ForceStiffnessAction(gym.Wrapper):
-    """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs)."""
-
-    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3) -> None:
-        super().__init__(env)
+    def _setup(self, env: Any, force_N: float, stiffness_rel: float) -> None:
         self.force_N, self.stiffness_rel = check_action_kwargs(force_N, stiffness_rel)
-        self.scale_bar = _residual_scale(env)
-        self._obs: np.ndarray | None = None
+        if not getattr(env.unwrapped, "residual", False):
+            raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and "
+                             "the k̂ observation)")
+        self.scale_bar = float(env.unwrapped.cfg.residual_scale_bar)
+        self._obs = None
 
-    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self._obs = np.asarray(obs)
         return obs, info
 
-    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def _residual(self, a: np.ndarray) -> np.ndarray:
+        """(n, 2) validated (a_F, a_k) → the residual action for the last observation."""
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
-        a = check_action(action)
-        residual = force_stiffness_to_residual(a[None], self._obs[None], self.force_N,
-                                               self.stiffness_rel, self.scale_bar)[0]
+        return force_stiffness_to_residual(a, self._obs.reshape(a.shape[0], -1), self.force_N,
+                                           self.stiffness_rel, self.scale_bar)
+
+
+class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
+    """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs)."""
+
+    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3) -> None:
+        gym.Wrapper.__init__(self, env)
+        self._setup(env, force_N, stiffness_rel)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        residual = self._residual(check_action(action)[None])[0]
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = np.asarray(obs)
         return obs, r, te, tr, info
 
 
-class ForceStiffnessVectorAction(VectorWrapper):
+class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
     """Native vector env: the action coordinates of ``ForceStiffnessAction``."""
 
     def __init__(self, env: VectorEnv, force_N: float = 20.0, stiffness_rel: float = 0.3
                  ) -> None:
-        super().__init__(env)
-        self.force_N, self.stiffness_rel = check_action_kwargs(force_N, stiffness_rel)
-        self.scale_bar = _residual_scale(env)
-        self._obs: np.ndarray | None = None
-
-    def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
-        obs, info = self.env.reset(**kwargs)
-        self._obs = np.asarray(obs)
-        return obs, info
+        VectorWrapper.__init__(self, env)
+        self._setup(env, force_N, stiffness_rel)
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
-        if self._obs is None:
-            raise RuntimeError("call reset() before step()")
-        a = check_action(actions, self.num_envs)
-        residual = force_stiffness_to_residual(a, self._obs, self.force_N, self.stiffness_rel,
-                                               self.scale_bar)
+        residual = self._residual(check_action(actions, self.num_envs))
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = np.asarray(obs)  # same-step autoreset: a new episode's first observation
         return obs, r, te, tr, info
