@@ -195,7 +195,7 @@ def _wrappers(spec: Any, env_id: str, where: str) -> dict[str, dict[str, Any]]:
     The kwargs are checked here, so a typo fails before training starts."""
     import dataclasses
 
-    from agents.wrappers import FeatureSpec, check_action_kwargs
+    from agents.wrappers import ACTION_KWARGS, FeatureSpec, check_action_kwargs
 
     if spec is None:
         return {}
@@ -215,7 +215,7 @@ def _wrappers(spec: Any, env_id: str, where: str) -> dict[str, dict[str, Any]]:
             raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")
         check, allowed = ((FeatureSpec, [f.name for f in dataclasses.fields(FeatureSpec)])
                           if name == OBS_WRAPPER else
-                          (check_action_kwargs, ["force_N", "stiffness_rel"]))
+                          (check_action_kwargs, list(ACTION_KWARGS)))
         unknown = sorted(set(kwargs) - set(allowed))
         if unknown:
             raise ConfigError(f"{where}: {name}: unknown key(s) {unknown}; allowed keys are "

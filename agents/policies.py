@@ -44,7 +44,7 @@ class LearnedPolicy:
         fs = None
         if aw is not None:
             scale = TaskConfig.from_kwargs(task).residual_scale_bar
-            fs = (*check_action_kwargs(**aw), scale)
+            fs = (*check_action_kwargs(**aw)[:2], scale)
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
                    float(task.get("dt_s", 0.01)), fs)
 

@@ -25,6 +25,9 @@ ground-force correction ΔF = a_F · ``force_N`` and a stiffness correction Δk 
 nominal model at the reference position the pressure correction is one 2×2 solve; it is applied
 as the env's residual action (clipped to [−1, 1]). a = 0 is the feedforward expert, and a force
 correction alone leaves the nominal stiffness at k̂ — the redundancy the paper's design uses.
+``rate_penalty`` w subtracts w·|a_t − a_{t−1}|² from the reward (a_{−1} = 0 each episode), the
+action-rate term of legged-robot RL, against high-frequency corrections that a lagging regulator
+turns into a limit cycle; it shapes training only, so a trained policy runs without it.
 
 Single-env wrappers are what an rl-zoo config names as ``env_wrapper``; the ``…Vector…`` ones wrap
 the native vector env (same-step autoreset). Both use the module's functions, so they agree.
@@ -114,12 +117,22 @@ class FeatureSpec:
         return np.concatenate(cols, axis=1).astype(np.float32)
 
 
-def check_action_kwargs(force_N: Any = 20.0, stiffness_rel: Any = 0.3) -> tuple[float, float]:
-    """Validated (force_N, stiffness_rel); ``ValueError`` names the bad one and its range."""
-    for name, value, hi in (("force_N", force_N, 200.0), ("stiffness_rel", stiffness_rel, 1.0)):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value <= hi:
-            raise ValueError(f"{name}={value!r} must be a number in (0, {hi:g}]")
-    return float(force_N), float(stiffness_rel)
+ACTION_KWARGS = ("force_N", "stiffness_rel", "rate_penalty")
+
+
+def check_action_kwargs(force_N: Any = 20.0, stiffness_rel: Any = 0.3, rate_penalty: Any = 0.0
+                        ) -> tuple[float, float, float]:
+    """Validated (force_N, stiffness_rel, rate_penalty); ``ValueError`` names the bad one and its
+    range."""
+    for name, value, lo, hi in (("force_N", force_N, None, 200.0),
+                                ("stiffness_rel", stiffness_rel, None, 1.0),
+                                ("rate_penalty", rate_penalty, 0.0, 100.0)):
+        ok = isinstance(value, int | float) and not isinstance(value, bool) and \
+            (lo <= value if lo is not None else 0 < value) and value <= hi
+        if not ok:
+            interval = f"[{lo:g}, {hi:g}]" if lo is not None else f"(0, {hi:g}]"
+            raise ValueError(f"{name}={value!r} must be a number in {interval}")
+    return float(force_N), float(stiffness_rel), float(rate_penalty)
 
 
 def harmonic_basis(obs: np.ndarray, harmonics: int) -> np.ndarray:
@@ -248,23 +261,36 @@ def _constants(params: Params) -> np.ndarray:
 
 class _ForceStiffnessMap:
     """What both force–stiffness wrappers share: the settings, the last observation (X̂ and k̂
-    for the map) and the reset that records it."""
+    for the map), the last action (for the rate penalty) and the reset that records them."""
 
     env: Any
     _obs: np.ndarray | None
+    _prev: np.ndarray
 
-    def _setup(self, env: Any, force_N: float, stiffness_rel: float) -> None:
-        self.force_N, self.stiffness_rel = check_action_kwargs(force_N, stiffness_rel)
+    def _setup(self, env: Any, force_N: float, stiffness_rel: float, rate_penalty: float,
+               n: int) -> None:
+        self.force_N, self.stiffness_rel, self.rate_penalty = check_action_kwargs(
+            force_N, stiffness_rel, rate_penalty)
         if not getattr(env.unwrapped, "residual", False):
             raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and "
                              "the k̂ observation)")
         self.scale_bar = float(env.unwrapped.cfg.residual_scale_bar)
         self._obs = None
+        self._prev = np.zeros((n, 2))
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self._obs = np.asarray(obs)
+        self._prev[:] = 0.0
         return obs, info
+
+    def _rate_cost(self, a: np.ndarray, done: np.ndarray) -> np.ndarray:
+        """rate_penalty · |a − a_prev|² per env (a_prev = 0 at an episode's first step); then
+        ``a`` becomes the previous action, except where an episode just ended."""
+        cost = self.rate_penalty * np.sum((a - self._prev) ** 2, axis=1)
+        self._prev[:] = a
+        self._prev[done] = 0.0
+        return cost
 
     def _residual(self, a: np.ndarray) -> np.ndarray:
         """(n, 2) validated (a_F, a_k) → the residual action for the last observation."""
@@ -277,28 +303,35 @@ class _ForceStiffnessMap:
 class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
     """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs)."""
 
-    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3) -> None:
+    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3,
+                 rate_penalty: float = 0.0) -> None:
         gym.Wrapper.__init__(self, env)
-        self._setup(env, force_N, stiffness_rel)
+        self._setup(env, force_N, stiffness_rel, rate_penalty, 1)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        residual = self._residual(check_action(action)[None])[0]
+        a = np.clip(check_action(action)[None], -1.0, 1.0)
+        residual = self._residual(a)[0]
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = np.asarray(obs)
+        if self.rate_penalty:
+            r = float(r - self._rate_cost(a, np.array([te or tr]))[0])
         return obs, r, te, tr, info
 
 
 class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
     """Native vector env: the action coordinates of ``ForceStiffnessAction``."""
 
-    def __init__(self, env: VectorEnv, force_N: float = 20.0, stiffness_rel: float = 0.3
-                 ) -> None:
+    def __init__(self, env: VectorEnv, force_N: float = 20.0, stiffness_rel: float = 0.3,
+                 rate_penalty: float = 0.0) -> None:
         VectorWrapper.__init__(self, env)
-        self._setup(env, force_N, stiffness_rel)
+        self._setup(env, force_N, stiffness_rel, rate_penalty, env.num_envs)
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:
-        residual = self._residual(check_action(actions, self.num_envs))
+        a = np.clip(check_action(actions, self.num_envs), -1.0, 1.0)
+        residual = self._residual(a)
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = np.asarray(obs)  # same-step autoreset: a new episode's first observation
+        if self.rate_penalty:
+            r = r - self._rate_cost(a, np.logical_or(te, tr))
         return obs, r, te, tr, info

@@ -147,3 +147,36 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
             assert not np.any(so[11:])  # integrals and previous action restart
         np.testing.assert_array_equal(so, vo[0])
     assert np.all(np.any(vo[:, 11:11 + m] != 0.0, axis=0))  # every integral moves
+
+
+def test_rate_penalty_charges_the_action_change_and_restarts_each_episode():
+    # r(w) = r(0) − w |a_t − a_{t−1}|², a_{−1} = 0 at every episode's first step; actions are
+    # taken as the env applies them (clipped to [−1, 1]); the vector wrapper agrees across its
+    # same-step autoreset
+    w = 2.5
+    kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
+    plain = ForceStiffnessAction(gym.make("MPALegResidual-v0", **kw))
+    pen = ForceStiffnessAction(gym.make("MPALegResidual-v0", **kw), rate_penalty=w)
+    vec = ForceStiffnessVectorAction(gym.make_vec(
+        "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
+        rate_penalty=w)
+    plain.reset(seed=3)
+    pen.reset(seed=3)
+    vec.reset(seed=3)
+    rng = np.random.default_rng(2)
+    prev = np.zeros(2)
+    for _ in range(70):  # two episode ends (30 steps each)
+        a = rng.uniform(-1.3, 1.3, (2, 2))
+        _, r0, te, tr, _ = plain.step(a[0])
+        _, r1, *_ = pen.step(a[0])
+        _, rv, *_ = vec.step(a)
+        applied = np.clip(a[0], -1, 1)
+        assert r1 == pytest.approx(r0 - w * np.sum((applied - prev) ** 2), rel=1e-12, abs=1e-12)
+        assert rv[0] == pytest.approx(r1, rel=1e-12, abs=1e-12)
+        prev = applied
+        if te or tr:
+            plain.reset()
+            pen.reset()
+            prev = np.zeros(2)
+    with pytest.raises(ValueError, match=r"rate_penalty=-1 must be a number in \[0, 100\]"):
+        ForceStiffnessAction(gym.make("MPALegResidual-v0"), rate_penalty=-1)
