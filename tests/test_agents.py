@@ -180,6 +180,8 @@ def test_resume_continues_the_step_count(tmp_path):
       r"harmonics=9 must be a whole number in \[0, 5\]"),
      ({"env_wrapper": [{"agents.wrappers.ForceStiffnessAction": {"force_N": 0}}]},
       r"ForceStiffnessAction: force_N=0 must be a number in \(0, 200\]"),
+     ({"env_wrapper": [{"agents.wrappers.ForceStiffnessAction": {"rate_penalty": "big"}}]},
+      r"ForceStiffnessAction: rate_penalty='big' must be a number in \[0, 100\]"),
      ({"env_wrapper": ["agents.wrappers.ForceStiffnessAction",
                        "agents.wrappers.ForceStiffnessAction"]}, "given twice"),
      ({"learning_rate": "fast"}, r"learning_rate='fast' must be a number or 'lin_<number>'"),
