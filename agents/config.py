@@ -15,7 +15,8 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       env_kwargs: {scenario: {...}, task: {...}}
       env_wrapper:
         - agents.wrappers.TrackingErrorObservation: {mask_pressures: true}
-        - agents.wrappers.ForceStiffnessAction: {force_N: 20.0, stiffness_rel: 0.3}
+        - agents.wrappers.ForceStiffnessAction:
+            {force_N: 20.0, stiffness_rel: 0.3, rate_penalty: 0.5}
       learning_rate: !!float 3e-4
       ...
     mpa_gym:
