@@ -19,6 +19,21 @@ action the env was last given instead, the other way to tell the command from th
 millimetre band (the plain error's running std is set by millimetre transients). All are
 what a controller computes from its measurements and its own commands, never a plant parameter.
 
+``errors_only`` leaves the env's observation out: the policy sees the error features alone, so it
+is a feedback law. Given X, X̂ or the phase, a policy trained on randomised plants learns the
+training distribution's average correction as a function of the phase and holds it on every
+plant, a periodic bias that its feedback then has to fight (0.076 mm on the nominal plant, where
+the feedforward alone is exact). Without the phase, though, the harmonic integrals cannot be
+turned back into a periodic correction; ``remodulate`` does that for the policy, appending per
+harmonic the resonant controller's output and its quadrature,
+
+    R_h = I_sh sin(hφ) + I_ch cos(hφ),   Q_h = I_sh cos(hφ) − I_ch sin(hφ),
+
+which after integrating e = c₁ sin φ + c₂ cos φ over a period T are (T/2) e(φ) and (T/2) e(φ + π/2):
+an infinite-gain loop at the reference frequency whose phase the policy sets by weighing R
+against Q, and zero while the integrals are zero, so no bias. (The raw I_sh, I_ch stay in the
+observation: their in-phase part tells a stiffness error, which the policy answers with a_k.)
+
 Action: ``ForceStiffnessAction`` lets the policy act in the coordinates the task is posed in: a
 ground-force correction ΔF = a_F · ``force_N`` and a stiffness correction Δk = a_k ·
 ``stiffness_rel`` · k̂. Both are affine in the two pressures (``affine_in_pressures``), so on the
@@ -68,6 +83,8 @@ class FeatureSpec:
     previous_action: bool = False  # append the action the env was last given
     mask_pressures: bool = False  # zero the measured pressures
     fine_error_m: float | None = None  # [m] also append clip(X̂ − X, ±this)
+    errors_only: bool = False  # drop the env observation: the features alone
+    remodulate: bool = False  # append each harmonic pair's resonant output and its quadrature
 
     def __post_init__(self) -> None:
         lim = self.limit_m_s
@@ -76,13 +93,16 @@ class FeatureSpec:
         h = self.harmonics
         if isinstance(h, bool) or not isinstance(h, int) or not 0 <= h <= MAX_HARMONICS:
             raise ValueError(f"harmonics={h!r} must be a whole number in [0, {MAX_HARMONICS}]")
-        for name in ("previous_action", "mask_pressures"):
+        for name in ("previous_action", "mask_pressures", "errors_only", "remodulate"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}={getattr(self, name)!r} must be true or false")
         f = self.fine_error_m
         if f is not None and (isinstance(f, bool) or not isinstance(f, int | float) or
                               not 0 < f <= 0.1):
             raise ValueError(f"fine_error_m={f!r} must be null or a number in (0, 0.1] m")
+        if self.remodulate and not self.harmonics:
+            raise ValueError("remodulate=True needs harmonics >= 1 (it remodulates their "
+                             "integrals)")
 
     @property
     def n_integrals(self) -> int:
@@ -96,24 +116,36 @@ class FeatureSpec:
         if self.fine_error_m is not None:
             lo.append(-self.fine_error_m)
             hi.append(self.fine_error_m)
-        return spaces.Box(np.concatenate([space.low, lo]).astype(np.float32),
-                          np.concatenate([space.high, hi]).astype(np.float32), dtype=np.float32)
+        if self.remodulate:
+            lo += [-np.sqrt(2) * lim] * (2 * self.harmonics)
+            hi += [np.sqrt(2) * lim] * (2 * self.harmonics)
+        base_lo, base_hi = (([], []) if self.errors_only else (space.low, space.high))
+        return spaces.Box(np.concatenate([base_lo, lo]).astype(np.float32),
+                          np.concatenate([base_hi, hi]).astype(np.float32), dtype=np.float32)
 
     def features(self, obs: np.ndarray, integ: np.ndarray, prev_action: np.ndarray
                  ) -> np.ndarray:
         """obs (n, d), integrals (n, m), previous action (n, 2) → the features (n, d + …):
-        [obs (pressures zeroed if masked), X̂ − X, V̂ − V, I…, (a_prev), (fine error)], float32.
-        Masking keeps the layout, so k̂ keeps its column."""
+        [obs (pressures zeroed if masked; left out if errors_only), X̂ − X, V̂ − V, I…, (a_prev),
+        (fine error), (R_1…R_h, Q_1…Q_h if remodulate)], float32. Masking keeps the layout."""
         n = obs.shape[0]
         if self.mask_pressures:
             obs = obs.copy()
             obs[:, OPE:OPF + 1] = 0.0
         e = obs[:, OXR] - obs[:, OX]
-        cols = [obs, e[:, None], (obs[:, OVR] - obs[:, OV])[:, None], np.reshape(integ, (n, -1))]
+        cols = [e[:, None], (obs[:, OVR] - obs[:, OV])[:, None], np.reshape(integ, (n, -1))]
+        if not self.errors_only:
+            cols.insert(0, obs)
         if self.previous_action:
             cols.append(np.reshape(prev_action, (n, 2)))
         if self.fine_error_m is not None:
             cols.append(np.clip(e, -self.fine_error_m, self.fine_error_m)[:, None])
+        if self.remodulate:
+            basis = harmonic_basis(obs, self.harmonics)
+            i = np.reshape(integ, (n, -1))
+            s_, c_ = basis[:, 1::2], basis[:, 2::2]
+            i_s, i_c = i[:, 1::2], i[:, 2::2]
+            cols += [i_s * s_ + i_c * c_, i_s * c_ - i_c * s_]
         return np.concatenate(cols, axis=1).astype(np.float32)
 
 
@@ -167,6 +199,7 @@ class TrackingErrorObservation(gym.Wrapper):
         self.observation_space = self.feature_spec.space(env.observation_space)
         self.integ = np.zeros(self.feature_spec.n_integrals)
         self.prev = np.zeros(2)
+        self.env_obs: np.ndarray | None = None  # the env's own last observation
 
     def _features(self, obs: np.ndarray) -> np.ndarray:
         return self.feature_spec.features(obs[None], self.integ[None], self.prev[None])[0]
@@ -175,12 +208,14 @@ class TrackingErrorObservation(gym.Wrapper):
         obs, info = self.env.reset(**kwargs)
         self.integ = np.zeros(self.feature_spec.n_integrals)
         self.prev = np.zeros(2)
+        self.env_obs = obs
         return self._features(obs), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         obs, r, te, tr, info = self.env.step(action)
         self.prev = np.clip(np.asarray(action, dtype=float), -1.0, 1.0)  # as the env applied it
         self.integ = integral_step(self.integ, obs, self.dt, self.feature_spec.limit_m_s)
+        self.env_obs = obs
         return self._features(obs), r, te, tr, info
 
 
@@ -195,11 +230,13 @@ class TrackingErrorVectorObservation(VectorWrapper):
         self.observation_space = batch_space(self.single_observation_space, env.num_envs)
         self.integ = np.zeros((env.num_envs, self.feature_spec.n_integrals))
         self.prev = np.zeros((env.num_envs, 2))
+        self.env_obs: np.ndarray | None = None  # the env's own last observations
 
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.integ[:] = 0.0
         self.prev[:] = 0.0
+        self.env_obs = obs
         return self.feature_spec.features(obs, self.integ, self.prev), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -218,6 +255,7 @@ class TrackingErrorVectorObservation(VectorWrapper):
         self.integ = integral_step(self.integ, obs, self.dt, limit)
         self.integ[done] = 0.0  # the returned obs of a finished env starts a new episode
         self.prev[done] = 0.0
+        self.env_obs = obs
         return self.feature_spec.features(obs, self.integ, self.prev), r, te, tr, info
 
 
@@ -280,9 +318,20 @@ class _ForceStiffnessMap:
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
-        self._obs = np.asarray(obs)
+        self._obs = self._env_obs(obs)
         self._prev[:] = 0.0
         return obs, info
+
+    def _env_obs(self, obs: Any) -> np.ndarray:
+        """The env's own observation (X̂ and k̂ for the map): a ``TrackingErrorObservation``
+        beneath keeps it, since its features may drop it (``errors_only``)."""
+        env_obs = getattr(self.env, "env_obs", None)
+        env_obs = np.asarray(obs if env_obs is None else env_obs)
+        if env_obs.shape[-1] <= OK:
+            raise ValueError(f"ForceStiffnessAction needs the env's observation (X̂ in column "
+                             f"{OXR}, k̂ in column {OK}) but got {env_obs.shape[-1]} columns: "
+                             "wrap a TrackingErrorObservation directly, or the env itself")
+        return env_obs
 
     def _rate_cost(self, a: np.ndarray, done: np.ndarray) -> np.ndarray:
         """rate_penalty · |a − a_prev|² per env (a_prev = 0 at an episode's first step); then
@@ -312,7 +361,7 @@ class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
         a = np.clip(check_action(action)[None], -1.0, 1.0)
         residual = self._residual(a)[0]
         obs, r, te, tr, info = self.env.step(residual)
-        self._obs = np.asarray(obs)
+        self._obs = self._env_obs(obs)
         if self.rate_penalty:
             r = float(r - self._rate_cost(a, np.array([te or tr]))[0])
         return obs, r, te, tr, info
@@ -331,7 +380,7 @@ class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
         a = np.clip(check_action(actions, self.num_envs), -1.0, 1.0)
         residual = self._residual(a)
         obs, r, te, tr, info = self.env.step(residual)
-        self._obs = np.asarray(obs)  # same-step autoreset: a new episode's first observation
+        self._obs = self._env_obs(obs)  # same-step autoreset: a new episode's first observation
         if self.rate_penalty:
             r = r - self._rate_cost(a, np.logical_or(te, tr))
         return obs, r, te, tr, info

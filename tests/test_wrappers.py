@@ -10,6 +10,7 @@ import pytest
 
 import mpa_gym  # noqa: F401  (registers the env ids)
 from agents.wrappers import (
+    FeatureSpec,
     ForceStiffnessAction,
     ForceStiffnessVectorAction,
     TrackingErrorObservation,
@@ -46,6 +47,42 @@ def test_harmonic_integrals_are_fourier_coefficients_over_a_period():
     np.testing.assert_allclose(harmonic_basis(obs, 2),
                                [1, np.sin(0.3), np.cos(0.3), np.sin(0.6), np.cos(0.6)],
                                rtol=1e-15)
+
+
+def test_remodulated_integrals_are_the_resonant_output_and_its_quadrature():
+    # after integrating e = c1 sin φ + c2 cos φ over one period T, (I_s1, I_c1) = (c1, c2) T/2,
+    # so the remodulated pair is R(φ) = I_s1 sin φ + I_c1 cos φ = (T/2) e(φ), in phase with the
+    # error (a resonant integrator's output), and Q(φ) = (T/2) e(φ + π/2), a quarter period ahead
+    T, n = 3.0, 300
+    c1, c2 = -2e-3, 0.5e-3
+    spec = FeatureSpec(harmonics=1, remodulate=True, errors_only=True)
+    integ = np.zeros(3)
+    for i in range(n):
+        phi = 2 * np.pi * i / n
+        obs = np.zeros(9)
+        obs[2], obs[4], obs[5] = c1 * np.sin(phi) + c2 * np.cos(phi), np.sin(phi), np.cos(phi)
+        integ = integral_step(integ, obs, T / n, 1.0)
+    for phi in np.linspace(0, 2 * np.pi, 7):
+        obs = np.zeros(9)
+        obs[4], obs[5] = np.sin(phi), np.cos(phi)
+        f = spec.features(obs[None], integ[None], np.zeros((1, 2)))[0]
+        assert f.shape == (2 + 3 + 2,)  # e, ė, I_0, I_s1, I_c1, R_1, Q_1
+        e = c1 * np.sin(phi) + c2 * np.cos(phi)
+        e_lead = c1 * np.sin(phi + np.pi / 2) + c2 * np.cos(phi + np.pi / 2)
+        np.testing.assert_allclose(f[-2:], [T / 2 * e, T / 2 * e_lead], rtol=1e-6, atol=1e-9)
+
+
+def test_feature_and_map_misuse_is_named():
+    with pytest.raises(ValueError, match=r"remodulate=True needs harmonics >= 1"):
+        FeatureSpec(remodulate=True)
+    with pytest.raises(ValueError, match=r"errors_only=1 must be true or false"):
+        FeatureSpec(errors_only=1)
+    # the map needs X̂ and k̂: over errors-only features it takes them from the observation
+    # wrapper beneath, and says so when another wrapper sits in between
+    inner = TrackingErrorObservation(gym.make("MPALegResidual-v0"), errors_only=True)
+    env = ForceStiffnessAction(gym.wrappers.TransformReward(inner, lambda r: r))
+    with pytest.raises(ValueError, match=r"needs the env's observation .* got 3 columns"):
+        env.reset(seed=0)
 
 
 def test_integrals_are_clipped_to_the_anti_windup_limit():
@@ -109,44 +146,52 @@ def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
         env.step(np.zeros(3))
 
 
-@pytest.mark.parametrize(("harmonics", "previous_action", "mask", "fine"),
-                         [(0, False, False, None), (1, True, False, None), (2, True, True, 1e-3),
-                          (0, False, True, 5e-4)])
-def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine):
+@pytest.mark.parametrize(("harmonics", "previous_action", "mask", "fine", "errors_only"),
+                         [(0, False, False, None, False), (1, True, False, None, False),
+                          (2, True, True, 1e-3, False), (0, False, True, 5e-4, False),
+                          (1, True, False, 5e-4, True)])
+def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine, errors_only):
     # observation features and action coordinates, across a same-step autoreset
     kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
+    feats = {"harmonics": harmonics, "previous_action": previous_action, "mask_pressures": mask,
+             "fine_error_m": fine, "errors_only": errors_only}
     single = ForceStiffnessAction(TrackingErrorObservation(
-        gym.make("MPALegResidual-v0", **kw), harmonics=harmonics,
-        previous_action=previous_action, mask_pressures=mask, fine_error_m=fine))
+        gym.make("MPALegResidual-v0", **kw), **feats))
     vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
         "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
-        harmonics=harmonics, previous_action=previous_action, mask_pressures=mask,
-        fine_error_m=fine))
+        **feats))
     m = 1 + 2 * harmonics
-    d = 9 + 2 + m + (2 if previous_action else 0) + (1 if fine else 0)
+    b = 0 if errors_only else 9  # the env's observation, or nothing of it
+    d = b + 2 + m + (2 if previous_action else 0) + (1 if fine else 0)
     so, _ = single.reset(seed=4)
     vo, _ = vec.reset(seed=4)
     assert so.shape == (d,) and vo.shape == (2, d)
+    assert single.observation_space.contains(so)
     assert vec.single_observation_space.contains(vo[0])
     np.testing.assert_array_equal(so, vo[0])
     rng = np.random.default_rng(1)
     for _ in range(45):  # crosses the 30-step episode end
         a = rng.uniform(-1, 1, (2, 2))
-        applied = force_stiffness_to_residual(a[:1], so[None], single.force_N,
+        env_obs = single.env.env_obs  # the map works at the env's X̂ and k̂, shown or not
+        applied = force_stiffness_to_residual(a[:1], env_obs[None], single.force_N,
                                               single.stiffness_rel, single.scale_bar)[0]
         so, _, te, tr, _ = single.step(a[0])
         vo, _, _, _, vinfo = vec.step(a)
-        assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
+        env_obs = single.env.env_obs
+        e = env_obs[2] - env_obs[0]
+        assert so[b] == np.float32(e) and so[b + 1] == np.float32(env_obs[3] - env_obs[1])
+        if not errors_only:
+            assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
         if previous_action:  # the residual the env applied, in its action units
-            np.testing.assert_array_equal(so[11 + m:13 + m], applied)
+            np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
         if fine:  # the error again, clipped to ±fine
-            assert so[-1] == np.float32(np.clip(so[9], -fine, fine))
+            assert so[-1] == np.float32(np.clip(e, -fine, fine))
         if te or tr:
             np.testing.assert_array_equal(so, vinfo["final_obs"][0])
             so, _ = single.reset()
-            assert not np.any(so[11:])  # integrals and previous action restart
+            assert not np.any(so[b + 2:])  # integrals and previous action restart
         np.testing.assert_array_equal(so, vo[0])
-    assert np.all(np.any(vo[:, 11:11 + m] != 0.0, axis=0))  # every integral moves
+    assert np.all(np.any(vo[:, b + 2:b + 2 + m] != 0.0, axis=0))  # every integral moves
 
 
 def test_rate_penalty_charges_the_action_change_and_restarts_each_episode():
