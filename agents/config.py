@@ -14,7 +14,8 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       policy_kwargs: "dict(net_arch=[64, 64], log_std_init=-2.0)"
       env_kwargs: {scenario: {...}, task: {...}}
       env_wrapper:
-        - agents.wrappers.TrackingErrorObservation: {mask_pressures: true}
+        - agents.wrappers.TrackingErrorObservation:
+            {errors_only: true, harmonics: 1, remodulate: true}
         - agents.wrappers.ForceStiffnessAction:
             {force_N: 20.0, stiffness_rel: 0.3, rate_penalty: 0.5}
       learning_rate: !!float 3e-4
