@@ -117,15 +117,16 @@ class FeatureSpec:
             lo.append(-self.fine_error_m)
             hi.append(self.fine_error_m)
         if self.remodulate:
-            lo += [-np.sqrt(2) * lim] * (2 * self.harmonics)
-            hi += [np.sqrt(2) * lim] * (2 * self.harmonics)
+            bound = np.sqrt(2) * lim * (1 + 1e-6)  # |R|, |Q| ≤ |(I_s, I_c)|; float32 rounding
+            lo += [-bound] * (2 * self.harmonics)
+            hi += [bound] * (2 * self.harmonics)
         base_lo, base_hi = (([], []) if self.errors_only else (space.low, space.high))
         return spaces.Box(np.concatenate([base_lo, lo]).astype(np.float32),
                           np.concatenate([base_hi, hi]).astype(np.float32), dtype=np.float32)
 
     def features(self, obs: np.ndarray, integ: np.ndarray, prev_action: np.ndarray
                  ) -> np.ndarray:
-        """obs (n, d), integrals (n, m), previous action (n, 2) → the features (n, d + …):
+        """obs (n, d), integrals (n, m), previous action (n, 2) → the features (n, d + … or …):
         [obs (pressures zeroed if masked; left out if errors_only), X̂ − X, V̂ − V, I…, (a_prev),
         (fine error), (R_1…R_h, Q_1…Q_h if remodulate)], float32. Masking keeps the layout."""
         n = obs.shape[0]
@@ -189,8 +190,10 @@ def integral_step(integ: np.ndarray, obs: np.ndarray, dt: float, limit: float) -
 
 
 class TrackingErrorObservation(gym.Wrapper):
-    """Single env: observation + [X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…, (a_prev), (fine error)];
-    integrals and previous action restart at 0. kwargs: the fields of ``FeatureSpec``."""
+    """Single env: [observation (left out if errors_only), X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…,
+    (a_prev), (fine error), (R_h…, Q_h… if remodulate)]; integrals and previous action restart
+    at 0; ``env_obs`` keeps the env's own last observation. kwargs: the fields of
+    ``FeatureSpec``."""
 
     def __init__(self, env: gym.Env, **kwargs: Any) -> None:
         super().__init__(env)
@@ -313,6 +316,16 @@ class _ForceStiffnessMap:
             raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and "
                              "the k̂ observation)")
         self.scale_bar = float(env.unwrapped.cfg.residual_scale_bar)
+        # X̂ and k̂ come from the observation beneath when it is the env's own, else from the
+        # TrackingErrorObservation directly beneath, which keeps the env's (its features may
+        # leave it out: errors_only)
+        self._from_features = hasattr(env, "env_obs")
+        own, seen = env.unwrapped.observation_space, env.observation_space
+        if not self._from_features and seen != own:
+            raise ValueError(f"ForceStiffnessAction needs the env's observation (X̂ in column "
+                             f"{OXR}, k̂ in column {OK}) but the observation beneath has shape "
+                             f"{seen.shape}, not {own.shape}: wrap a TrackingErrorObservation "
+                             "directly, or the env itself")
         self._obs = None
         self._prev = np.zeros((n, 2))
 
@@ -323,15 +336,8 @@ class _ForceStiffnessMap:
         return obs, info
 
     def _env_obs(self, obs: Any) -> np.ndarray:
-        """The env's own observation (X̂ and k̂ for the map): a ``TrackingErrorObservation``
-        beneath keeps it, since its features may drop it (``errors_only``)."""
-        env_obs = getattr(self.env, "env_obs", None)
-        env_obs = np.asarray(obs if env_obs is None else env_obs)
-        if env_obs.shape[-1] <= OK:
-            raise ValueError(f"ForceStiffnessAction needs the env's observation (X̂ in column "
-                             f"{OXR}, k̂ in column {OK}) but got {env_obs.shape[-1]} columns: "
-                             "wrap a TrackingErrorObservation directly, or the env itself")
-        return env_obs
+        """The env's own observation, for the map's X̂ and k̂ (``_setup``)."""
+        return np.asarray(self.env.env_obs if self._from_features else obs)
 
     def _rate_cost(self, a: np.ndarray, done: np.ndarray) -> np.ndarray:
         """rate_penalty · |a − a_prev|² per env (a_prev = 0 at an episode's first step); then

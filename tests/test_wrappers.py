@@ -78,11 +78,13 @@ def test_feature_and_map_misuse_is_named():
     with pytest.raises(ValueError, match=r"errors_only=1 must be true or false"):
         FeatureSpec(errors_only=1)
     # the map needs X̂ and k̂: over errors-only features it takes them from the observation
-    # wrapper beneath, and says so when another wrapper sits in between
-    inner = TrackingErrorObservation(gym.make("MPALegResidual-v0"), errors_only=True)
-    env = ForceStiffnessAction(gym.wrappers.TransformReward(inner, lambda r: r))
-    with pytest.raises(ValueError, match=r"needs the env's observation .* got 3 columns"):
-        env.reset(seed=0)
+    # wrapper beneath, and says so when another wrapper sits in between, whatever the width
+    for feats in ({"errors_only": True},
+                  {"errors_only": True, "harmonics": 1, "remodulate": True,
+                   "previous_action": True}):  # 9 columns, as many as the env's
+        inner = TrackingErrorObservation(gym.make("MPALegResidual-v0"), **feats)
+        with pytest.raises(ValueError, match=r"needs the env's observation .* has shape"):
+            ForceStiffnessAction(gym.wrappers.TransformReward(inner, lambda r: r))
 
 
 def test_integrals_are_clipped_to_the_anti_windup_limit():
@@ -146,15 +148,17 @@ def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
         env.step(np.zeros(3))
 
 
-@pytest.mark.parametrize(("harmonics", "previous_action", "mask", "fine", "errors_only"),
-                         [(0, False, False, None, False), (1, True, False, None, False),
-                          (2, True, True, 1e-3, False), (0, False, True, 5e-4, False),
-                          (1, True, False, 5e-4, True)])
-def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine, errors_only):
+@pytest.mark.parametrize(
+    ("harmonics", "previous_action", "mask", "fine", "errors_only", "remod"),
+    [(0, False, False, None, False, False), (1, True, False, None, False, False),
+     (2, True, True, 1e-3, False, True), (0, False, True, 5e-4, False, False),
+     (1, True, False, 5e-4, True, True)])
+def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine, errors_only,
+                                          remod):
     # observation features and action coordinates, across a same-step autoreset
     kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
     feats = {"harmonics": harmonics, "previous_action": previous_action, "mask_pressures": mask,
-             "fine_error_m": fine, "errors_only": errors_only}
+             "fine_error_m": fine, "errors_only": errors_only, "remodulate": remod}
     single = ForceStiffnessAction(TrackingErrorObservation(
         gym.make("MPALegResidual-v0", **kw), **feats))
     vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
@@ -162,7 +166,8 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
         **feats))
     m = 1 + 2 * harmonics
     b = 0 if errors_only else 9  # the env's observation, or nothing of it
-    d = b + 2 + m + (2 if previous_action else 0) + (1 if fine else 0)
+    r = 2 * harmonics if remod else 0  # R_h, Q_h last
+    d = b + 2 + m + (2 if previous_action else 0) + (1 if fine else 0) + r
     so, _ = single.reset(seed=4)
     vo, _ = vec.reset(seed=4)
     assert so.shape == (d,) and vo.shape == (2, d)
@@ -185,7 +190,7 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
         if previous_action:  # the residual the env applied, in its action units
             np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
         if fine:  # the error again, clipped to ±fine
-            assert so[-1] == np.float32(np.clip(e, -fine, fine))
+            assert so[d - r - 1] == np.float32(np.clip(e, -fine, fine))
         if te or tr:
             np.testing.assert_array_equal(so, vinfo["final_obs"][0])
             so, _ = single.reset()
