@@ -69,11 +69,6 @@ OX, OV, OXR, OVR, OSIN, OCOS, OPE, OPF, OK = range(9)  # observation columns (ta
 MAX_HARMONICS = 5
 
 
-def n_integrals(harmonics: int) -> int:
-    """Number of integral features: I_0 and one (sin, cos) pair per harmonic."""
-    return 1 + 2 * harmonics
-
-
 @dataclass(frozen=True)
 class FeatureSpec:
     """What ``TrackingErrorObservation`` appends (its kwargs; module docstring)."""
@@ -106,7 +101,8 @@ class FeatureSpec:
 
     @property
     def n_integrals(self) -> int:
-        return n_integrals(self.harmonics)
+        """Number of integral features: I_0 and one (sin, cos) pair per harmonic."""
+        return 1 + 2 * self.harmonics
 
     def space(self, space: spaces.Box) -> spaces.Box:
         """The observation space with the features appended."""
