@@ -22,17 +22,20 @@ FIELDS = ("C1", "C2", "D0", "b", "n", "gamma", "L0", "Vr", "Lo", "Lu", "L1", "L2
           # derived once here so the kernels do not recompute them every evaluation
           "b2", "K", "L02", "4pi_n2", "LoLu", "Lo2_Lu2", "L1sq_L2sq", "L1L2",
           # reciprocals: the kernels multiply instead of divide
-          "1/L02", "1/K", "1/(L02 K)", "1/4pi_n2", "1/(2 LoLu)", "1/LoLu", "1/m")
+          "1/L02", "1/K", "1/(L02 K)", "1/4pi_n2", "1/(2 LoLu)", "1/LoLu", "1/m",
+          # effects beyond the paper (0: off): braid friction, slider friction, regulator
+          "mu_b", "1/v_b", "F_c", "c_s", "1/v_s", "lag", "slew")
 NC = len(FIELDS)
 (C1, C2, D0, B_, N_, GAMMA, L0, VR, LO, LU, L1, L2, R, M, G, BETA0, LMF0,
  B2, KK, L02_, FOURPIN2, LOLU, LO2LU2, L1SQL2SQ, L1L2,
- INV_L02, INV_K, INV_L02K, INV_4PIN2, INV_2LOLU, INV_LOLU, INV_M) = range(NC)
+ INV_L02, INV_K, INV_L02K, INV_4PIN2, INV_2LOLU, INV_LOLU, INV_M,
+ MU_B, INV_VB, F_C, C_S, INV_VS, LAG, SLEW) = range(NC)
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 def pack(p: Params) -> np.ndarray:
     """The constants vector of a parameter set (one row of a batch)."""
-    mp, lg = p.mpa, p.leg
+    mp, lg, reg = p.mpa, p.leg, p.regulator
     vals = {"C1": mp.C1, "C2": mp.C2, "D0": mp.D0, "b": mp.b, "n": mp.n, "gamma": mp.gamma,
             "L0": mp.L0, "Vr": mp.Vr, "Lo": lg.Lo, "Lu": lg.Lu, "L1": lg.L1, "L2": lg.L2,
             "r": lg.r, "m": lg.m, "g": lg.g, "beta0": lg.beta0, "l_mf0": lg.l_mf0,
@@ -45,6 +48,9 @@ def pack(p: Params) -> np.ndarray:
     vals["1/(L02 K)"] = 1.0 / (vals["L02"] * vals["K"])
     vals["1/(2 LoLu)"] = 0.5 / vals["LoLu"]
     vals["1/m"] = 1.0 / lg.m
+    vals.update({"mu_b": mp.friction, "1/v_b": 1.0 / mp.friction_v, "F_c": lg.friction_coulomb,
+                 "c_s": lg.friction_viscous, "1/v_s": 1.0 / lg.friction_v, "lag": reg.lag,
+                 "slew": reg.slew})
     return np.array([vals[f] for f in FIELDS], dtype=np.float64)
 
 
@@ -97,33 +103,59 @@ def _geometry(X, c):
 
 
 @numba.njit(**JIT)
+def _tension(P, L, v, c):
+    """(f, ∂f/∂v, braid-friction factor tanh(v/v_b)) of one MPA: Eq. (2), (4) and the braid
+    friction of ``mpa.force`` (μ_b = 0: the paper's f = static − γ v)."""
+    f = _mpa_static(P, L, c) - c[GAMMA] * v
+    dfdv = -c[GAMMA]
+    th = 0.0
+    mu = c[MU_B]
+    if mu > 0.0:
+        fP = -P * (c[B2] - 3.0 * L * L) * c[INV_4PIN2]  # −P' dV_b/dL
+        th = math.tanh(v * c[INV_VB])
+        f -= mu * fP * th
+        dfdv -= mu * fP * (1.0 - th * th) * c[INV_VB]
+    return f, dfdv, th
+
+
+@numba.njit(**JIT)
 def ground_force(X, V, Pe, Pf, c):
     """F of Eq. (5) at one state; NaN outside the model's domain."""
     _, _, _, Le, Lf, Ge, Gf = _geometry(X, c)
-    gam = c[GAMMA]
-    return Ge * (_mpa_static(Pe, Le, c) - gam * Ge * V) - Gf * (_mpa_static(Pf, Lf, c)
-                                                                + gam * Gf * V)
+    fe, _, _ = _tension(Pe, Le, Ge * V, c)
+    ff, _, _ = _tension(Pf, Lf, -Gf * V, c)
+    return Ge * fe - Gf * ff
 
 
 @numba.njit(**JIT)
 def force_and_stiffness(X, V, Pe, Pf, c):
-    """(F, k = −∂F/∂X) of Eq. (5) and (23) at one state; NaN outside the model's domain."""
+    """(F, k = −∂F/∂X) of Eq. (5) and (23) at one state; NaN outside the model's domain.
+
+    ∂F/∂X in the general form of ``dynamics.force_terms`` (∂f/∂v = −γ without braid friction).
+    """
     cos_b, sin_b, l_mf, Le, Lf, Ge, Gf = _geometry(X, c)
     dbeta = X / (c[LOLU] * sin_b)
     dGe = Ge / X - Ge * cos_b * dbeta / sin_b
     dGf = Gf / X - Gf * Gf / l_mf
-    gam = c[GAMMA]
-    fe = _mpa_static(Pe, Le, c) - gam * Ge * V
-    ff = _mpa_static(Pf, Lf, c) + gam * Gf * V
+    fe, dfe_dv, the = _tension(Pe, Le, Ge * V, c)
+    ff, dff_dv, thf = _tension(Pf, Lf, -Gf * V, c)
     F = Ge * fe - Gf * ff
-    dFdX = (dGe * fe - Ge * Ge * _mpa_slope(Pe, Le, c) - gam * Ge * dGe * V
-            - dGf * ff - Gf * Gf * _mpa_slope(Pf, Lf, c) - gam * Gf * dGf * V)
+    # ∂f/∂L at fixed v: the pressure term of the slope scaled by (1 − μ_b tanh(v/v_b))
+    mu = c[MU_B]
+    d2Vb_e = -6.0 * Le * c[INV_4PIN2]
+    d2Vb_f = -6.0 * Lf * c[INV_4PIN2]
+    sl_e = _mpa_slope(Pe, Le, c) + mu * the * Pe * d2Vb_e
+    sl_f = _mpa_slope(Pf, Lf, c) + mu * thf * Pf * d2Vb_f
+    dFdX = (dGe * fe - Ge * Ge * sl_e + Ge * dGe * V * dfe_dv
+            - dGf * ff - Gf * Gf * sl_f + Gf * dGf * V * dff_dv)
     return F, -dFdX
 
 
 @numba.njit(**JIT)
 def _accel(X, V, Pe, Pf, f_ext, c):
-    return (ground_force(X, V, Pe, Pf, c) + f_ext) * c[INV_M] - c[G]
+    """dV/dt of Eq. (15) with the slider friction −F_c tanh(V/v_s) − c_s V."""
+    fs = -c[F_C] * math.tanh(V * c[INV_VS]) - c[C_S] * V if c[F_C] > 0.0 or c[C_S] > 0.0 else 0.0
+    return (ground_force(X, V, Pe, Pf, c) + fs + f_ext) * c[INV_M] - c[G]
 
 
 @numba.njit(**JIT)
@@ -137,23 +169,70 @@ def _rk4(X, V, pe0, pf0, pem, pfm, pe1, pf1, f_ext, h, c):
 
 
 @numba.njit(**JIT)
-def plant_step(X, V, Pe, Pf, cmd_e, cmd_f, f_ext, lag, dt, c, substeps=1):
-    """``substeps`` RK4 steps of Eq. (15) over ``dt`` with the pressure command held (ZOH).
+def regulator_pressure(P0, cmd, s, tau, r):
+    """P'(s) under a held command: ``dynamics.regulator_pressure`` for one MPA."""
+    e = cmd - P0
+    if tau == 0.0:
+        if r == 0.0:
+            return cmd
+        return P0 + min(max(e, -r * s), r * s)
+    if r == 0.0:
+        return cmd - e * math.exp(-s / tau)
+    s1 = (abs(e) - r * tau) / r
+    sg = 1.0 if e > 0.0 else -1.0
+    if s1 <= 0.0:
+        return cmd - e * math.exp(-s / tau)
+    if s <= s1:
+        return P0 + sg * r * s
+    return cmd - sg * r * tau * math.exp(-(s - s1) / tau)
 
-    The regulator is first order with time constant ``lag`` (0: ideal, P' = command); its exact
-    solution P'(s) = cmd + (P'0 − cmd) e^(−s/lag) gives the pressures at the RK4 stage times.
-    ``f_ext`` is the mean external force over the step. Returns (X, V, P'_e, P'_f) at t + dt.
+
+@numba.njit(**JIT)
+def _regime_end(P0, cmd, tau, r, eps):
+    """[s] when the held-command solution changes form (the end of a slew ramp), or +inf
+    (also for an end closer than ``eps``): the RK4 steps stop there so they never straddle
+    the kink."""
+    if r == 0.0:
+        return math.inf
+    s1 = (abs(cmd - P0) - r * tau) / r
+    return s1 if s1 > eps else math.inf
+
+
+@numba.njit(**JIT)
+def plant_step(X, V, Pe, Pf, ce0, cf0, ce1, cf1, t_switch, f_ext, dt, c, substeps=1):
+    """One control period ``dt`` of Eq. (15) in ``substeps`` RK4 steps, the regulator of
+    ``RegulatorParams`` solved exactly.
+
+    The command reaching the regulator is (ce0, cf0) before ``t_switch`` and (ce1, cf1) from
+    then on, so a dead time that is not a whole number of control periods switches inside the
+    period (the caller keeps the command history; ``t_switch`` = 0: the command is (ce1, cf1)
+    throughout). The pressures follow the exact held-command solution (``regulator_pressure``,
+    lag τ and slew r from the constants) and are evaluated at each RK4 stage time; the RK4
+    steps are split where the command switches and where a slew ramp ends, so no step
+    straddles a kink of P'(t). ``f_ext`` is the mean external force over the period.
+    Returns (X, V, P'_e, P'_f) at t + dt.
     """
     h = dt / substeps
-    for _ in range(substeps):
-        if lag > 0.0:
-            am = math.exp(-0.5 * h / lag)
-            a1 = am * am
-            pem, pfm = cmd_e + (Pe - cmd_e) * am, cmd_f + (Pf - cmd_f) * am
-            pe1, pf1 = cmd_e + (Pe - cmd_e) * a1, cmd_f + (Pf - cmd_f) * a1
-            X, V = _rk4(X, V, Pe, Pf, pem, pfm, pe1, pf1, f_ext, h, c)
+    tau, r = c[LAG], c[SLEW]
+    eps = 1e-12 * dt
+    t = 0.0
+    for k in range(substeps):
+        t_end = dt if k == substeps - 1 else (k + 1) * h
+        while t < t_end - eps:
+            if t < t_switch - eps:
+                ce, cf, seg = ce0, cf0, min(t_end, t_switch)
+            else:
+                ce, cf, seg = ce1, cf1, t_end
+            seg = min(seg, t + _regime_end(Pe, ce, tau, r, eps),
+                      t + _regime_end(Pf, cf, tau, r, eps))
+            hh = seg - t
+            pe0 = regulator_pressure(Pe, ce, 0.0, tau, r)
+            pf0 = regulator_pressure(Pf, cf, 0.0, tau, r)
+            pem = regulator_pressure(Pe, ce, 0.5 * hh, tau, r)
+            pfm = regulator_pressure(Pf, cf, 0.5 * hh, tau, r)
+            pe1 = regulator_pressure(Pe, ce, hh, tau, r)
+            pf1 = regulator_pressure(Pf, cf, hh, tau, r)
+            X, V = _rk4(X, V, pe0, pf0, pem, pfm, pe1, pf1, f_ext, hh, c)
             Pe, Pf = pe1, pf1
-        else:
-            X, V = _rk4(X, V, cmd_e, cmd_f, cmd_e, cmd_f, cmd_e, cmd_f, f_ext, h, c)
-            Pe, Pf = cmd_e, cmd_f
+            t = seg
     return X, V, Pe, Pf

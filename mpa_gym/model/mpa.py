@@ -9,6 +9,20 @@ Documented assumption (DESIGN.md): the braided-cylinder geometry
 ``D(L) = sqrt(b² − L²) / (n π)`` and ``V_b(L) = π D² L / 4 = L (b² − L²) / (4 π n²)``.
 The stretches used in W are λ1 = L / L0 (axial), λ2 = D(L) / D0 (hoop), λ3 = 1 / (λ1 λ2)
 (incompressible rubber); the Appendix's dW/dL is exactly the L-derivative of this W.
+
+Braid friction (not in the paper; off by default, ``MPAParams.friction`` = 0). The strands of the
+braid rub on each other and on the bladder, and the friction grows with the pressure that presses
+them together: Tondu & Lopez ("Modeling and control of McKibben artificial muscle robot
+actuators", IEEE Control Systems Magazine 20(2):15-38, 2000) model it as a dry friction force
+proportional to the pressure force, opposing the contraction velocity. Here
+
+    f_fr = −μ_b f_P tanh(v / v_b),    f_P = −P' dV_b/dL ≥ 0 (the pressure term of Eq. 2)
+
+with the sign function regularised by tanh over the contraction velocity v_b (``friction_v``) so
+that the right-hand side stays smooth and fixed-step RK4 stays fourth order. It only dissipates
+(f_fr v ≤ 0) and, for |v| ≫ v_b, gives the rate-independent loop of width 2 μ_b f_P between
+contraction and extension that McKibben muscles show in slow pressure or length sweeps. Below
+v_b it acts as a viscous term, so a sweep slower than that shows a narrower loop.
 """
 
 from __future__ import annotations
@@ -16,7 +30,7 @@ from __future__ import annotations
 import math
 
 from mpa_gym.model.params import MPAParams
-from mpa_gym.model.xp import Array, sqrt
+from mpa_gym.model.xp import Array, sqrt, tanh
 
 PI = math.pi
 
@@ -78,7 +92,8 @@ def d2W_dL2(L: Array, p: MPAParams) -> Array:
 
 
 def force(P: Array, L: Array, v: Array, p: MPAParams) -> Array:
-    """[N] MPA tension f(P', L, v) = −P' dV_b/dL + V_r dW/dL − γ v, Eq. (2) with Eq. (4).
+    """[N] MPA tension f(P', L, v) = −P' dV_b/dL + V_r dW/dL − γ v, Eq. (2) with Eq. (4),
+    minus the braid friction μ_b f_P tanh(v / v_b) of the module docstring when μ_b > 0.
 
     Parameters
     ----------
@@ -86,9 +101,26 @@ def force(P: Array, L: Array, v: Array, p: MPAParams) -> Array:
     L : actuator length [m].
     v : contractile velocity [m/s], positive when the MPA shortens.
     """
-    return -P * dVb_dL(L, p) + p.Vr * dW_dL(L, p) - p.gamma * v
+    f = -P * dVb_dL(L, p) + p.Vr * dW_dL(L, p) - p.gamma * v
+    if p.friction:
+        f = f - braid_friction(P, L, v, p)
+    return f
 
 
-def dforce_dL(P: Array, L: Array, p: MPAParams) -> Array:
-    """[N/m] ∂f/∂L at fixed P' and v: −P' d²V_b/dL² + V_r d²W/dL²."""
-    return -P * d2Vb_dL2(L, p) + p.Vr * d2W_dL2(L, p)
+def braid_friction(P: Array, L: Array, v: Array, p: MPAParams) -> Array:
+    """[N] μ_b f_P tanh(v / v_b), f_P = −P' dV_b/dL: the friction that ``force`` subtracts."""
+    return p.friction * (-P * dVb_dL(L, p)) * tanh(v / p.friction_v)
+
+
+def dforce_dL(P: Array, L: Array, p: MPAParams, v: Array = 0.0) -> Array:
+    """[N/m] ∂f/∂L at fixed P' and v: −P' d²V_b/dL² (1 − μ_b tanh(v/v_b)) + V_r d²W/dL²."""
+    scale = 1.0 - p.friction * tanh(v / p.friction_v) if p.friction else 1.0
+    return -P * d2Vb_dL2(L, p) * scale + p.Vr * d2W_dL2(L, p)
+
+
+def dforce_dv(P: Array, L: Array, v: Array, p: MPAParams) -> Array:
+    """[N s/m] ∂f/∂v at fixed P' and L: −γ − μ_b f_P (1 − tanh²(v/v_b)) / v_b."""
+    if not p.friction:
+        return -p.gamma + 0.0 * v
+    th = tanh(v / p.friction_v)
+    return -p.gamma - p.friction * (-P * dVb_dL(L, p)) * (1.0 - th * th) / p.friction_v

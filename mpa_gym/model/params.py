@@ -7,6 +7,7 @@ Variants are made with :func:`dataclasses.replace`; no default is repeated anywh
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields
 from functools import cached_property
 
@@ -29,10 +30,9 @@ def check_range(
     ``low_open`` / ``high_open`` make the corresponding bound strict; ``note`` says why the
     range is what it is (e.g. the equation that imposes it).
     """
-    try:
-        x = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}={value!r} is not a number") from None
+    if isinstance(value, bool | str | bytes | complex) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name}={value!r} is not a number ({type(value).__name__} given)")
+    x = float(value)
     left = "(" if low_open else "["
     right = ")" if high_open else "]"
     unit_s = f" {unit}" if unit else ""
@@ -66,14 +66,21 @@ class MPAParams:
     gamma: float = 30.0  # [N s/m] γ = γ_e = γ_f, viscosity coefficient, Eq. (4), Tab. A1
     L0: float = 125.0e-3  # [m] L_0 = L_e0 = L_f0, resting length, Tab. A1/A2
     thickness: float = 1.0e-3  # [m] t, bladder wall thickness (assumption, DESIGN.md)
+    # Braid friction (not in the paper; 0 keeps its model exact): a dry friction on the tension
+    # proportional to the pressure force −P' dV_b/dL, after Tondu & Lopez (2000); see mpa.force.
+    friction: float = 0.0  # [-] μ_b, friction force / pressure force
+    friction_v: float = 1.0e-3  # [m/s] v_b, contraction velocity of the tanh regularisation
 
     def __post_init__(self) -> None:
         units = {"C1": "Pa", "C2": "Pa", "D0": "m", "b": "m", "gamma": "N s/m", "L0": "m",
-                 "thickness": "m"}
+                 "thickness": "m", "friction_v": "m/s"}
         for f in fields(self):
             check_range(f"MPAParams.{f.name}", getattr(self, f.name))
-        _positive(self, "C1", "D0", "b", "n", "gamma", "L0", "thickness", units=units)
+        _positive(self, "C1", "D0", "b", "n", "gamma", "L0", "thickness", "friction_v",
+                  units=units)
         check_range("MPAParams.C2", self.C2, 0.0, unit="Pa")
+        check_range("MPAParams.friction", self.friction, 0.0, 1.0, high_open=True,
+                    note="a share of the pressure force")
         # Pressure makes tension only while dV_b/dL < 0, i.e. L > b/√3 (braid angle < 54.7°).
         check_range("MPAParams.L0", self.L0, self.b / math.sqrt(3.0), self.b,
                     low_open=True, high_open=True, unit="m")
@@ -108,13 +115,22 @@ class LegParams:
     m: float = 3.74  # [kg] m, representative mass of leg and hip, Tab. A2
     g: float = 9.86  # [m/s^2] g, gravitational acceleration, Tab. A2
     x_rest: float = 0.8  # [m] hip height where L_e = L_f = L0: β0 = β(x_rest) (assumption)
+    # Friction of the hip slider (not in the paper; 0 keeps its Eq. 15 exact), see
+    # dynamics.slider_friction: f_s = −F_c tanh(V / v_s) − c_s V.
+    friction_coulomb: float = 0.0  # [N] F_c, Coulomb friction of the slider
+    friction_viscous: float = 0.0  # [N s/m] c_s, viscous friction of the slider
+    friction_v: float = 5.0e-3  # [m/s] v_s, hip velocity of the tanh regularisation
 
     def __post_init__(self) -> None:
         units = {k: "m" for k in ("Lo", "Lu", "L1", "L2", "r", "x_rest")}
-        units.update(m="kg", g="m/s^2")
+        units.update(m="kg", g="m/s^2", friction_coulomb="N", friction_viscous="N s/m",
+                     friction_v="m/s")
         for f in fields(self):
             check_range(f"LegParams.{f.name}", getattr(self, f.name))
-        _positive(self, "Lo", "Lu", "L1", "L2", "r", "m", "g", "x_rest", units=units)
+        _positive(self, "Lo", "Lu", "L1", "L2", "r", "m", "g", "x_rest", "friction_v",
+                  units=units)
+        check_range("LegParams.friction_coulomb", self.friction_coulomb, 0.0, unit="N")
+        check_range("LegParams.friction_viscous", self.friction_viscous, 0.0, unit="N s/m")
         lo, hi = self.x_domain
         check_range("LegParams.x_rest", self.x_rest, lo, hi, low_open=True, high_open=True,
                     unit="m")
@@ -140,17 +156,40 @@ class LegParams:
 
 
 @dataclass(frozen=True)
+class RegulatorParams:
+    """The pressure regulators between a command and the MPA (not in the paper, which applies
+    P' at once; the defaults are that ideal regulator). Per MPA, with the command c delayed by
+    the dead time, c_d(t) = c(t − T_d):
+
+        dP'/dt = sat((c_d − P') / τ, r)     (sat clips to [−r, r]; r = 0: no limit)
+
+    With τ = 0 the lag vanishes: P' = c_d, reached at the rate r when r > 0. See
+    ``dynamics.regulator_pressure`` for the exact solution under a held command.
+    """
+
+    lag: float = 0.0  # [s] τ, first-order time constant (0: none)
+    dead_time: float = 0.0  # [s] T_d, transport and valve delay (0: none)
+    slew: float = 0.0  # [Pa/s] r, largest |dP'/dt| (0: unlimited)
+
+    def __post_init__(self) -> None:
+        check_range("RegulatorParams.lag", self.lag, 0.0, 1.0, unit="s")
+        check_range("RegulatorParams.dead_time", self.dead_time, 0.0, 1.0, unit="s")
+        check_range("RegulatorParams.slew", self.slew, 0.0, unit="Pa/s", note="0: unlimited")
+
+
+@dataclass(frozen=True)
 class Params:
-    """Everything the physics needs: the MPA model (both actuators) and the leg."""
+    """Everything the physics needs: the MPA model (both actuators), the leg, the regulators."""
 
     mpa: MPAParams = field(default_factory=MPAParams)
     leg: LegParams = field(default_factory=LegParams)
+    regulator: RegulatorParams = field(default_factory=RegulatorParams)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.mpa, MPAParams):
-            raise TypeError(f"Params.mpa must be MPAParams, got {type(self.mpa).__name__}")
-        if not isinstance(self.leg, LegParams):
-            raise TypeError(f"Params.leg must be LegParams, got {type(self.leg).__name__}")
+        for name, cls in (("mpa", MPAParams), ("leg", LegParams), ("regulator", RegulatorParams)):
+            if not isinstance(getattr(self, name), cls):
+                raise TypeError(f"Params.{name} must be {cls.__name__}, got "
+                                f"{type(getattr(self, name)).__name__}")
 
 
 DEFAULT_PARAMS = Params()

@@ -24,3 +24,10 @@ def acos(x: Array) -> Array:
         return math.acos(x) if -1.0 <= x <= 1.0 else math.nan
     return np.arccos(x)
 
+
+
+def tanh(x: Array) -> Array:
+    """tanh x, for floats as for arrays."""
+    if isinstance(x, float):
+        return math.tanh(x)
+    return np.tanh(x)
