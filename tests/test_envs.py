@@ -17,7 +17,7 @@ from mpa_gym.analysis.scenario import ScenarioError
 from mpa_gym.analysis.simulate import simulate
 from mpa_gym.design.feedforward import InfeasibleDesignError, joint_stiffness
 from mpa_gym.model.params import BAR
-from mpa_gym.task.config import INFO_KEYS, REWARD_KEYS
+from mpa_gym.task.contract import INFO_KEYS, REWARD_KEYS
 
 IDS = ["MPALeg-v0", "MPALegResidual-v0"]
 SCENARIOS = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch", "kmax",
@@ -221,6 +221,50 @@ def test_dead_time_delays_the_command_by_whole_steps():
         applied.append(info["pressure_bar"])
     assert_allclose(applied[:3], [p0] * 3)  # the first three steps still act on the old command
     assert_allclose(applied[3:], cmds[:3])
+
+
+def _step_response(plant, n=8, via="scenario"):
+    """Pressures at the ends of n periods after a step of both commands (MPALeg-v0: the action
+    maps straight to a pressure; the safety layer's slew limit is opened wide). The plant comes
+    from the scenario or from reset(options=...)."""
+    sc = {"name": "step", "duration_s": 3.0, "plant": plant if via == "scenario" else {}}
+    env = gym.make("MPALeg-v0", scenario=sc, task={"slew_bar_per_s": 1e4})
+    env.reset(seed=0, options={"plant": plant} if via == "options" else None)
+    p0 = env.unwrapped.engine.state[0, 2:4] / BAR
+    t, applied = [], []
+    for _ in range(n):
+        *_, info = env.step(np.array([0.2, -0.7]))
+        t.append(info["t_s"])
+        applied.append(info["pressure_bar"])
+    return np.array(t), np.array(applied), p0, info["pressure_cmd_bar"]
+
+
+@pytest.mark.parametrize("via", ["scenario", "options"])
+@pytest.mark.parametrize("dead", [0.025, 0.0137])
+def test_dead_time_is_resolved_below_one_control_period(dead, via):
+    # A step through a 20 ms lag: after the dead time T_d the pressure is
+    # c + (p0 − c) e^(−(t − T_d)/τ), so each sample gives T_d = t + τ ln((c − P)/(c − p0)).
+    # Every sample after the dead time must give the configured value (to 1e-9 s: the closed
+    # form is exact), not a whole number of 10 ms periods; before it, nothing has moved.
+    tau = 0.02
+    t, p, p0, cmd = _step_response({"pressure_dead_time_s": dead, "pressure_lag_s": tau},
+                                   via=via)
+    before = t <= dead
+    assert_allclose(p[before], np.broadcast_to(p0, p[before].shape), rtol=1e-12)
+    est = t[~before, None] + tau * np.log((cmd - p[~before]) / (cmd - p0))
+    assert_allclose(est, dead, atol=1e-9)
+
+
+def test_regulator_slew_limit_ramps_the_pressure_after_the_dead_time():
+    # Without a lag a slew-limited regulator ramps at r from T_d until it reaches the command:
+    # P = p0 ± r (t − T_d), so the samples on the ramp give T_d = t − |P − p0| / r exactly.
+    r, dead = 5.0, 0.0137  # bar/s, s
+    t, p, p0, cmd = _step_response({"pressure_dead_time_s": dead, "pressure_slew_bar_per_s": r},
+                                   n=30)
+    ramp = (t > dead) & np.all(np.abs(p - cmd) > 1e-9, axis=1)
+    assert ramp.sum() >= 5
+    assert_allclose(t[ramp, None] - np.abs(p[ramp] - p0) / r, dead, atol=1e-9)
+    assert_allclose(p[-1], cmd, rtol=1e-12)  # and it gets there (the steps are < 0.3 s at r)
 
 
 def test_pressure_quantisation_and_encoder_resolution():

@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import yaml
 
 from mpa_gym.analysis.scenario import (
+    PLANT_RANGES,
+    Inputs,
+    Plant,
+    Randomization,
     ScenarioError,
     load_scenario,
     scenario_from_dict,
@@ -14,7 +20,9 @@ from mpa_gym.analysis.scenario import (
 )
 from mpa_gym.analysis.simulate import SimulationError, simulate
 from mpa_gym.analysis.stability import analyze, linear_steady_state_error
+from mpa_gym.design.reference import Reference
 from mpa_gym.model.leg import kinematics
+from mpa_gym.model.params import DEFAULT_PARAMS
 from mpa_gym.model.params import DEFAULT_PARAMS as P
 
 NAMED = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch", "kmax", "kmin",
@@ -169,3 +177,58 @@ def test_leaving_the_model_domain_raises_and_keeps_the_partial_run():
     part = e.value.partial
     assert part is not None and part.t.size > 0 and np.all(np.isfinite(part.x))
     assert part.t[-1] >= 1.0
+
+
+# ------------------------------------------------------------ the dataclasses check themselves
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: Plant(mass_kg=-1), r"plant.mass_kg=-1 kg is outside the allowed range"),
+        (lambda: Plant(pressure_lag_s="slow"), r"plant.pressure_lag_s='slow' must be a number"),
+        (lambda: Plant(C1_Pa=float("nan")), r"plant.C1_Pa=nan must be finite"),
+        (lambda: Inputs(pf_mean_bar=0.5, pf_amp_bar=0.9), r"inputs.pf_amp_bar=0.9 bar is outside"),
+        (lambda: Inputs(mode=[1]), r"inputs.mode=\[1\] must be one of \[1, 2, 3\]"),
+        (lambda: Inputs(mode=True), r"inputs.mode=True must be one of"),
+        (lambda: Inputs(stiffness="kmed"), r"inputs.stiffness='kmed' must be 'kmax' or 'kmin'"),
+        (lambda: Inputs(mode=1, stiffness_const_N_per_m=5e3), r"at most one of"),
+        (lambda: Inputs(p_max_bar=0.0), r"inputs.p_max_bar=0 bar is outside the allowed range"),
+        (lambda: Randomization((("mass_kg", 5.0, 4.0),)), r"randomize.mass_kg=\[5, 4\]: low"),
+        (lambda: Randomization((("encoder_resolution_m", 0.0, 1e-4),)),
+         r"randomize: unknown key\(s\) \['encoder_resolution_m'\]"),
+        (lambda: Randomization((("mass_kg", -1.0, 4.0),)), r"randomize.mass_kg=-1 kg is outside"),
+        (lambda: Randomization.from_dict({"mass_kg": 4.0}), r"must be a \[low, high\] pair"),
+    ],
+)
+def test_the_scenario_dataclasses_validate_themselves(make, match):
+    with pytest.raises(ScenarioError, match=match):
+        make()
+
+
+def test_every_plant_field_has_a_range_and_values_become_floats():
+    assert {f.name for f in dataclasses.fields(Plant)} == set(PLANT_RANGES)
+    p = Plant(mass_kg=4, extra_mass_kg=np.float32(0.5))
+    assert type(p.mass_kg) is float and type(p.extra_mass_kg) is float
+    assert Randomization((("mass_kg", 3, 4),)).ranges == (("mass_kg", 3.0, 4.0),)
+
+
+def test_one_design_builder_serves_scenarios_plans_and_the_cli(capsys):
+    """Inputs.design is what a scenario, a plan's stiffness target and the CLI flags build."""
+    import json
+
+    from mpa_gym.cli import main
+    from mpa_gym.task.plan import stiffness_design
+
+    sc = load_scenario("nominal")
+    t = np.linspace(0.0, 3.0, 31)
+    for stiffness, inputs in (("kmax", Inputs(stiffness="kmax")),
+                              (4000.0, Inputs(stiffness_const_N_per_m=4000.0))):
+        a = stiffness_design(sc, stiffness, DEFAULT_PARAMS).pressures(t)
+        b = inputs.design(sc.reference).pressures(t)
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(sc.design().pressures(t),
+                                  Inputs().design(Reference()).pressures(t))
+    assert main(["design", "--mode", "2", "--samples", "31", "--json"]) == 0
+    o = json.loads(capsys.readouterr().out)
+    pe, pf = Inputs(mode=2).design(Reference()).pressures(np.asarray(o["t"])).T / 1e5
+    np.testing.assert_allclose(o["pe_bar"], pe, rtol=0, atol=1e-12)  # the same floats, via JSON
+    np.testing.assert_allclose(o["pf_bar"], pf, rtol=0, atol=1e-12)

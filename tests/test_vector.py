@@ -16,7 +16,12 @@ REALISTIC = {
               "velocity_noise_mps": 1e-3, "pressure_noise_bar": 0.005,
               "pressure_quantum_bar": 0.01, "encoder_resolution_m": 2e-5},
     "randomize": {"mass_kg": [3.5, 4.2], "gamma_Ns_per_m": [20, 40], "C2_Pa": [0, 5e3],
-                  "initial_x_offset_m": [-0.01, 0.01]},
+                  "initial_x_offset_m": [-0.01, 0.01],
+                  # each leg its own dead time (grows the history at an autoreset), slew
+                  # limit, braid and slider friction
+                  "pressure_dead_time_s": [0.0, 0.045], "pressure_slew_bar_per_s": [5, 50],
+                  "braid_friction_ratio": [0.0, 0.05], "slider_friction_N": [0.0, 2.0],
+                  "slider_viscous_Ns_per_m": [0.0, 5.0]},
     "disturbances": [{"type": "impulse", "t_s": 0.2, "force_N": 10.0, "duration_s": 0.05}],
 }
 

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from mpa_gym.design.feedforward import (
     P_MAX_DEFAULT,
@@ -24,7 +23,8 @@ from mpa_gym.design.feedforward import (
     StiffnessEnvelope,
 )
 from mpa_gym.design.reference import MODES, FlexorPattern, Reference
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.files import read_yaml
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 
 SCENARIO_DIR_ENV = "MPA_GYM_SCENARIOS"
 
@@ -39,9 +39,20 @@ class InitialState:
     v_mps: float  # [m/s] V(0)
 
 
+def _number(name: str, value: Any, **rng: Any) -> float:
+    """A real number (not a bool or a string) within ``rng`` (``check_range``'s arguments)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
+        raise ScenarioError(f"{name}={value!r} must be a number")
+    try:
+        return check_range(name, value, **rng)
+    except ValueError as e:
+        raise ScenarioError(str(e)) from None
+
+
 @dataclass(frozen=True)
 class Inputs:
-    """Feedforward inputs: an Eq. (22) pattern, a Table 1 mode, or an Eq. (25) stiffness target."""
+    """Feedforward inputs: an Eq. (22) pattern, a Table 1 mode, or an Eq. (25) stiffness target
+    (at most one of ``mode``, ``stiffness``, ``stiffness_const_N_per_m``)."""
 
     pf_mean_bar: float = 0.5  # [bar] P'_f0 (Fig. 3: constant 0.5 bar)
     pf_amp_bar: float = 0.0  # [bar] A_f
@@ -49,6 +60,45 @@ class Inputs:
     stiffness: str | None = None  # "kmax" | "kmin" (Fig. 11) -> Eq. (25) design
     stiffness_const_N_per_m: float | None = None  # constant k̂ -> Eq. (25) design
     p_max_bar: float = P_MAX_DEFAULT / BAR  # [bar] upper pressure limit of the regulators
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        if self.mode is not None and (isinstance(self.mode, bool) or not isinstance(
+                self.mode, int | np.integer) or int(self.mode) not in MODES):
+            raise ScenarioError(f"inputs.mode={self.mode!r} must be one of {sorted(MODES)}")
+        if self.stiffness is not None and self.stiffness not in ("kmax", "kmin"):
+            raise ScenarioError(f"inputs.stiffness={self.stiffness!r} must be 'kmax' or 'kmin'")
+        set_(self, "p_max_bar", _number("inputs.p_max_bar", self.p_max_bar, low=0.0,
+                                        low_open=True, unit="bar"))
+        chosen = [k for k in ("mode", "stiffness", "stiffness_const_N_per_m")
+                  if getattr(self, k) is not None]
+        if len(chosen) > 1:
+            raise ScenarioError(f"inputs: give at most one of mode, stiffness, "
+                                f"stiffness_const_N_per_m (got {chosen})")
+        mean = _number("inputs.pf_mean_bar", self.pf_mean_bar, low=0.0, high=self.p_max_bar,
+                       unit="bar")
+        set_(self, "pf_mean_bar", mean)
+        set_(self, "pf_amp_bar", _number("inputs.pf_amp_bar", self.pf_amp_bar, low=-mean,
+                                         high=mean, unit="bar", note="Eq. 22: |A_f| <= P'_f0"))
+        if self.stiffness_const_N_per_m is not None:
+            set_(self, "stiffness_const_N_per_m", _number(
+                "inputs.stiffness_const_N_per_m", self.stiffness_const_N_per_m, unit="N/m"))
+
+    def design(self, reference: Reference, params: Params = DEFAULT_PARAMS) -> FeedforwardDesign:
+        """The feedforward for ``reference`` on the nominal model ``params``: Eq. (25) for a
+        stiffness target (the Fig. 11 envelope or a constant k̂), else Eq. (16) under the
+        Eq. (22) flexor pattern (a Table 1 mode's, or P'_f0 and A_f)."""
+        if self.stiffness is not None:
+            return FeedforwardDesign(reference, stiffness=StiffnessEnvelope(
+                self.stiffness, reference, params=params), params=params)
+        if self.stiffness_const_N_per_m is not None:
+            return FeedforwardDesign(reference, stiffness=ConstantStiffness(
+                self.stiffness_const_N_per_m), params=params)
+        mean, amp = MODES[self.mode] if self.mode is not None else (self.pf_mean_bar,
+                                                                     self.pf_amp_bar)
+        return FeedforwardDesign(reference, flexor=FlexorPattern(mean * BAR, amp * BAR,
+                                                                 reference.period),
+                                 params=params)
 
 
 @dataclass(frozen=True)
@@ -66,12 +116,22 @@ class Plant:
     C2_Pa: float | None = None  # [Pa] true Mooney-Rivlin C2 instead of 1.3 kPa
     thickness_m: float | None = None  # [m] true bladder wall thickness instead of 1 mm
     pressure_lag_s: float = 0.0  # [s] first-order regulator time constant (0: ideal)
-    pressure_dead_time_s: float = 0.0  # [s] regulator dead time (env: whole control steps)
+    pressure_dead_time_s: float = 0.0  # [s] regulator dead time, any value (not whole steps)
+    pressure_slew_bar_per_s: float = 0.0  # [bar/s] regulator rate limit (0: unlimited)
+    braid_friction_ratio: float = 0.0  # [-] MPA braid friction / pressure force (hysteresis)
+    slider_friction_N: float = 0.0  # [N] Coulomb friction of the hip slider
+    slider_viscous_Ns_per_m: float = 0.0  # [N s/m] viscous friction of the hip slider
     pressure_quantum_bar: float = 0.0  # [bar] command resolution of the regulator (0: exact)
     encoder_resolution_m: float = 0.0  # [m] hip-encoder quantum (0: exact)
     position_noise_m: float = 0.0  # [m] std of white noise on the measured X
     velocity_noise_mps: float = 0.0  # [m/s] std of white noise on the measured V
     pressure_noise_bar: float = 0.0  # [bar] std of white noise on the measured pressures
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if v is not None:
+                object.__setattr__(self, f.name, check_plant_value(f.name, v))
 
 
 # field -> (low, high, low_open, unit): the allowed range of each plant field, shared by the
@@ -85,6 +145,10 @@ PLANT_RANGES: dict[str, tuple[float, float, bool, str]] = {
     "thickness_m": (0.0, 7.5e-3, True, "m"),
     "pressure_lag_s": (0.0, 1.0, False, "s"),
     "pressure_dead_time_s": (0.0, 1.0, False, "s"),
+    "pressure_slew_bar_per_s": (0.0, 1e4, False, "bar/s"),
+    "braid_friction_ratio": (0.0, 0.5, False, ""),
+    "slider_friction_N": (0.0, 100.0, False, "N"),
+    "slider_viscous_Ns_per_m": (0.0, 1e3, False, "N s/m"),
     "pressure_quantum_bar": (0.0, 1.0, False, "bar"),
     "encoder_resolution_m": (0.0, 0.01, False, "m"),
     "position_noise_m": (0.0, 0.01, False, "m"),
@@ -93,7 +157,8 @@ PLANT_RANGES: dict[str, tuple[float, float, bool, str]] = {
 }
 # what domain randomisation may draw per episode (plus the initial-state offsets)
 RANDOMIZABLE = ("extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa", "thickness_m",
-                "pressure_lag_s")
+                "pressure_lag_s", "pressure_dead_time_s", "pressure_slew_bar_per_s",
+                "braid_friction_ratio", "slider_friction_N", "slider_viscous_Ns_per_m")
 INITIAL_OFFSETS: dict[str, tuple[float, float, bool, str]] = {
     "initial_x_offset_m": (-0.05, 0.05, False, "m"),
     "initial_v_offset_mps": (-1.0, 1.0, False, "m/s"),
@@ -119,6 +184,30 @@ class Randomization:
     """Per-episode uniform ranges (low, high) for plant fields and initial-state offsets."""
 
     ranges: tuple[tuple[str, float, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        checked = []
+        for entry in self.ranges:
+            if not (isinstance(entry, tuple | list) and len(entry) == 3):
+                raise ScenarioError(f"randomize: {entry!r} must be a (field, low, high) triple")
+            k, lo, hi = entry
+            if k not in RANDOMIZABLE and k not in INITIAL_OFFSETS:
+                raise ScenarioError(f"randomize: unknown key(s) [{k!r}]; allowed keys are "
+                                    f"{sorted({*RANDOMIZABLE, *INITIAL_OFFSETS})}")
+            lo = check_plant_value(k, lo, "randomize")
+            hi = check_plant_value(k, hi, "randomize")
+            if lo > hi:
+                raise ScenarioError(f"randomize.{k}=[{lo:g}, {hi:g}]: low must be <= high")
+            checked.append((k, lo, hi))
+        object.__setattr__(self, "ranges", tuple(checked))
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Randomization:
+        """From the YAML form {field: [low, high]}."""
+        for k, v in d.items():
+            if not (isinstance(v, list | tuple) and len(v) == 2):
+                raise ScenarioError(f"randomize.{k}={v!r} must be a [low, high] pair")
+        return cls(tuple((k, v[0], v[1]) for k, v in d.items()))
 
     def as_dict(self) -> dict[str, list[float]]:
         return {k: [lo, hi] for k, lo, hi in self.ranges}
@@ -159,17 +248,7 @@ class Scenario:
 
     def design(self, params: Params = DEFAULT_PARAMS) -> FeedforwardDesign:
         """The feedforward, designed on the nominal model ``params`` (never on the plant)."""
-        inp, ref = self.inputs, self.reference
-        if inp.stiffness is not None:
-            return FeedforwardDesign(ref, stiffness=StiffnessEnvelope(inp.stiffness, ref,
-                                                                      params=params),
-                                     params=params)
-        if inp.stiffness_const_N_per_m is not None:
-            return FeedforwardDesign(ref, stiffness=ConstantStiffness(inp.stiffness_const_N_per_m),
-                                     params=params)
-        mean, amp = MODES[inp.mode] if inp.mode is not None else (inp.pf_mean_bar, inp.pf_amp_bar)
-        return FeedforwardDesign(ref, flexor=FlexorPattern(mean * BAR, amp * BAR, ref.period),
-                                 params=params)
+        return self.inputs.design(self.reference, params)
 
     def plant_params(self, params: Params = DEFAULT_PARAMS, plant: Plant | None = None
                      ) -> Params:
@@ -178,8 +257,13 @@ class Scenario:
         m = (pl.mass_kg if pl.mass_kg is not None else params.leg.m) + pl.extra_mass_kg
         over = {"gamma": pl.gamma_Ns_per_m, "C1": pl.C1_Pa, "C2": pl.C2_Pa,
                 "thickness": pl.thickness_m}
-        mpa = dataclasses.replace(params.mpa, **{k: v for k, v in over.items() if v is not None})
-        return Params(mpa=mpa, leg=dataclasses.replace(params.leg, m=m))
+        mpa = dataclasses.replace(params.mpa, **{k: v for k, v in over.items() if v is not None},
+                                  friction=pl.braid_friction_ratio)
+        leg = dataclasses.replace(params.leg, m=m, friction_coulomb=pl.slider_friction_N,
+                                  friction_viscous=pl.slider_viscous_Ns_per_m)
+        reg = RegulatorParams(lag=pl.pressure_lag_s, dead_time=pl.pressure_dead_time_s,
+                              slew=pl.pressure_slew_bar_per_s * BAR)
+        return Params(mpa=mpa, leg=leg, regulator=reg)
 
     def to_dict(self) -> dict[str, Any]:
         """The resolved scenario in the YAML schema (for writing beside results)."""
@@ -203,6 +287,8 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- loading
+# YAML key of each Reference field (Eq. 21)
+REFERENCE_KEYS = {"x0_m": "x0", "amp_m": "amp", "period_s": "period"}
 _TOP_KEYS = {"name", "description", "duration_s", "initial_state", "reference", "inputs", "plant",
              "disturbances", "randomize"}
 
@@ -228,11 +314,23 @@ def _num(d: dict[str, Any], key: str, where: str, default: Any = None, **rng: An
         return default
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ScenarioError(f"{where}.{key}={v!r} must be a number")
+        raise ScenarioError(f"{where}.{key}={v!r} must be a number{_why_not_number(v)}")
     try:
         return check_range(f"{where}.{key}", v, **rng)
     except ValueError as e:
         raise ScenarioError(str(e)) from None
+
+
+def _why_not_number(v: Any) -> str:
+    """YAML 1.1 reads ``1e9`` (no dot) as a string: say so when that is what happened."""
+    if isinstance(v, str):
+        try:
+            float(v)
+        except ValueError:
+            return ""
+        return (f" (YAML read {v!r} as text: a number in exponent form needs a dot and a "
+                "sign, e.g. 1.0e+9, or write it out)")
+    return ""
 
 
 def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
@@ -240,51 +338,17 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
     top = _section(d, f"scenario {name!r}", _TOP_KEYS, {"duration_s"})
     w = str(top.get("name", name))
     try:
-        ref_d = _section(top.get("reference"), f"{w}: reference", {"x0_m", "amp_m", "period_s"})
-        ref = Reference(
-            x0=_num(ref_d, "x0_m", "reference", 0.8, low=0.0, low_open=True, unit="m"),
-            amp=_num(ref_d, "amp_m", "reference", 0.02, low=0.0, unit="m"),
-            period=_num(ref_d, "period_s", "reference", 3.0, low=0.0, low_open=True, unit="s"),
-        )
+        ref_d = _section(top.get("reference"), f"{w}: reference", set(REFERENCE_KEYS))
+        ref = Reference(**{REFERENCE_KEYS[k]: _num(ref_d, k, "reference") for k in ref_d
+                           if ref_d[k] is not None})
         ref.check_reachable(DEFAULT_PARAMS.leg)
         inp_d = _section(top.get("inputs"), f"{w}: inputs",
                          {f.name for f in dataclasses.fields(Inputs)})
-        mode = inp_d.get("mode")
-        if mode is not None and mode not in MODES:
-            raise ScenarioError(f"inputs.mode={mode!r} must be one of {sorted(MODES)}")
-        stiff = inp_d.get("stiffness")
-        if stiff is not None and stiff not in ("kmax", "kmin"):
-            raise ScenarioError(f"inputs.stiffness={stiff!r} must be 'kmax' or 'kmin'")
-        p_max = _num(inp_d, "p_max_bar", "inputs", P_MAX_DEFAULT / BAR, low=0.0, low_open=True,
-                     unit="bar")
-        chosen = [k for k in ("mode", "stiffness", "stiffness_const_N_per_m") if
-                  inp_d.get(k) is not None]
-        if len(chosen) > 1:
-            raise ScenarioError(f"inputs: give at most one of mode, stiffness, "
-                                f"stiffness_const_N_per_m (got {chosen})")
-        pf_mean = _num(inp_d, "pf_mean_bar", "inputs", 0.5, low=0.0, high=p_max, unit="bar")
-        inputs = Inputs(
-            pf_mean_bar=pf_mean,
-            pf_amp_bar=_num(inp_d, "pf_amp_bar", "inputs", 0.0, low=-pf_mean, high=pf_mean,
-                            unit="bar", note="Eq. 22: |A_f| <= P'_f0"),
-            mode=mode, stiffness=stiff,
-            stiffness_const_N_per_m=_num(inp_d, "stiffness_const_N_per_m", "inputs", None,
-                                         unit="N/m"),
-            p_max_bar=p_max,
-        )
+        inputs = Inputs(**{k: v for k, v in inp_d.items() if v is not None})
         plant_d = _section(top.get("plant"), f"{w}: plant", set(PLANT_RANGES))
-        plant = Plant(**{k: check_plant_value(k, v) for k, v in plant_d.items() if v is not None})
-        rnd_d = _section(top.get("randomize"), f"{w}: randomize",
-                         set(RANDOMIZABLE) | set(INITIAL_OFFSETS))
-        ranges = []
-        for k, v in rnd_d.items():
-            if not (isinstance(v, list | tuple) and len(v) == 2):
-                raise ScenarioError(f"randomize.{k}={v!r} must be a [low, high] pair")
-            lo = check_plant_value(k, v[0], "randomize")
-            hi = check_plant_value(k, v[1], "randomize")
-            if lo > hi:
-                raise ScenarioError(f"randomize.{k}=[{lo:g}, {hi:g}]: low must be <= high")
-            ranges.append((k, lo, hi))
+        plant = Plant(**{k: v for k, v in plant_d.items() if v is not None})
+        randomize = Randomization.from_dict(_section(top.get("randomize"), f"{w}: randomize",
+                                                     set(RANDOMIZABLE) | set(INITIAL_OFFSETS)))
         duration = _num(top, "duration_s", "scenario", None, low=0.0, low_open=True, high=3600.0,
                         unit="s")
         init = None
@@ -317,7 +381,7 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
                 type=kind))
         return Scenario(name=w, duration_s=duration, reference=ref, inputs=inputs,
                         initial_state=init, plant=plant, disturbances=tuple(dists),
-                        randomize=Randomization(tuple(ranges)),
+                        randomize=randomize,
                         description=str(top.get("description", "")))
     except ScenarioError as e:
         raise ScenarioError(f"scenario {w!r}: {e}") from None
@@ -345,6 +409,9 @@ def load_scenario(spec: str | os.PathLike[str] | dict[str, Any] | Scenario) -> S
         return spec
     if isinstance(spec, dict):
         return scenario_from_dict(spec, str(spec.get("name", "custom")))
+    if not isinstance(spec, str | os.PathLike):
+        raise ScenarioError(f"scenario={spec!r} must be a name of {scenario_names()}, a YAML "
+                            "path, a mapping or a Scenario")
     path = Path(spec)
     if not path.suffix:
         for d in scenario_dirs():
@@ -352,13 +419,11 @@ def load_scenario(spec: str | os.PathLike[str] | dict[str, Any] | Scenario) -> S
                 path = d / f"{spec}.yaml"
                 break
         else:
+            if path.is_dir():
+                raise ScenarioError(f"scenario={str(spec)!r} is a folder, not a YAML file or one "
+                                    f"of the named scenarios {scenario_names()}")
             raise ScenarioError(f"scenario={str(spec)!r} is neither a file nor one of the named "
                                 f"scenarios {scenario_names()}")
-    if not path.is_file():
-        raise ScenarioError(f"scenario file {str(path)!r} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ScenarioError(f"scenario file {str(path)!r} is not valid YAML: {e}") from None
+    data = read_yaml(path, "scenario file", ScenarioError)
     return scenario_from_dict(data, data.get("name", path.stem) if isinstance(data, dict)
                               else path.stem)

@@ -9,14 +9,22 @@ every disturbance edge, so the piecewise-constant force is integrated without st
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from mpa_gym.analysis.scenario import Scenario, load_scenario
-from mpa_gym.model.dynamics import integrate_reference, plant_rhs, rk4_step_u
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.design.feedforward import InfeasibleDesignError
+from mpa_gym.model.dynamics import (
+    has_pressure_state,
+    integrate_reference,
+    plant_rhs,
+    regulator_pressure,
+    rk4_step_u,
+)
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 
 DT_DEFAULT = 5.0e-3  # [s] RK4 step; tests hold it to 1e-6 m of solve_ivp (measured 4e-8 m)
 METRIC_PERIODS = 3  # rmse and max error over the last three periods (DESIGN.md)
@@ -121,14 +129,29 @@ def simulate(
     check_range("dt", dt, 0.0, 0.1, low_open=True, unit="s")
     if method not in ("rk4", "reference"):
         raise ValueError(f"method={method!r} must be 'rk4' or 'reference'")
-    design = sc.design(params)
+    # an infeasible design (pressures outside [0, p_max], MPA lengths outside their domain)
+    # would be simulated with pressures no regulator gives: refuse it with design's report
+    try:
+        design = sc.design(params).require_feasible(p_max=sc.inputs.p_max_bar * BAR)
+    except InfeasibleDesignError as e:
+        raise InfeasibleDesignError(f"scenario {sc.name!r}: the feedforward design is {e}"
+                                    ) from None
     plant = sc.plant_params(params)
-    lag = sc.plant.pressure_lag_s
-    breaks = sorted({e for d in sc.disturbances for e in (d.t_s, d.t_s + d.duration_s)})
+    reg = plant.regulator
+    # A slew limit without a lag has no smooth ODE (dP'/dt = r sign(c − P')): RK4 then takes the
+    # pressures from the rate limiter's solution over each step, P'_n + clip(c(t) − P'_n, ±r s),
+    # exact while the command moves monotonically within a step, and integrates (X, V) alone.
+    limiter = reg.lag == 0.0 and reg.slew > 0.0
+    lag = has_pressure_state(plant)  # P' is part of the state
+    mech = dataclasses.replace(plant, regulator=RegulatorParams()) if limiter else plant
+    # the grid holds every impulse edge and the end of the dead time (where the delayed command
+    # starts to move: a kink of the input)
+    breaks = sorted({e for d in sc.disturbances for e in (d.t_s, d.t_s + d.duration_s)}
+                    | ({reg.dead_time} if reg.dead_time > 0.0 else set()))
     grid = _time_grid(sc.duration_s, dt, breaks)
     x0, v0 = sc.start_state()
     u_start = design.pressures(0.0)
-    y0 = np.array([x0, v0, *u_start] if lag > 0.0 else [x0, v0])
+    y0 = np.array([x0, v0, *u_start] if lag else [x0, v0])
 
     if output_dt is None:
         keep = np.ones(grid.size, dtype=bool)
@@ -148,8 +171,13 @@ def simulate(
         return np.concatenate([cmd, _external_force(sc, t, side)[..., None]], axis=-1)
 
     if method == "reference":
+        if limiter:
+            raise ValueError("method='reference' needs pressure_lag_s > 0 when "
+                             "pressure_slew_bar_per_s is set (a pure rate limiter has no "
+                             "smooth ODE for solve_ivp)")
+
         def rhs(t: float, y: np.ndarray) -> np.ndarray:
-            return plant_rhs(y, u_at(np.array([t]), "right")[0], plant, lag)
+            return plant_rhs(y, u_at(np.array([t]), "right")[0], plant)
 
         ys = integrate_reference(rhs, grid, y0, breakpoints=tuple(breaks))
     else:
@@ -161,10 +189,19 @@ def simulate(
         ys[0] = y = y0
 
         def f(y: np.ndarray, u: np.ndarray) -> np.ndarray:
-            return plant_rhs(y, u, plant, lag)
+            return plant_rhs(y, u, mech)
 
         for i in range(h.size):
-            y = rk4_step_u(f, y, u0[i], um[i], u1[i], float(h[i]))
+            if limiter:  # the rate limiter's pressures at the stage times, from P'_n
+                hi = float(h[i])
+                a0 = regulator_pressure(y[2:], u0[i, :2], 0.0, plant)
+                am = regulator_pressure(y[2:], um[i, :2], 0.5 * hi, plant)
+                a1 = regulator_pressure(y[2:], u1[i, :2], hi, plant)
+                xv = rk4_step_u(f, y[:2], np.append(a0, u0[i, 2]), np.append(am, um[i, 2]),
+                                np.append(a1, u1[i, 2]), hi)
+                y = np.concatenate([xv, a1])
+            else:
+                y = rk4_step_u(f, y, u0[i], um[i], u1[i], float(h[i]))
             if not np.all(np.isfinite(y)):
                 part = _result(sc, design, grid[: i + 1], ys[: i + 1], lag, keep[: i + 1])
                 raise SimulationError(
@@ -175,11 +212,11 @@ def simulate(
     return _result(sc, design, grid, ys, lag, keep)
 
 
-def _result(sc: Scenario, design: Any, grid: np.ndarray, ys: np.ndarray, lag: float,
+def _result(sc: Scenario, design: Any, grid: np.ndarray, ys: np.ndarray, lag: bool,
             keep: np.ndarray) -> SimulationResult:
     t = grid[keep]
     ys = ys[keep]
     cmd = design.pressures(np.maximum(t - sc.plant.pressure_dead_time_s, 0.0))
-    applied = ys[:, 2:4] if lag > 0.0 else cmd
+    applied = ys[:, 2:4] if lag else cmd
     return SimulationResult(sc, t, ys[:, 0], ys[:, 1], design.reference.position(t), cmd,
                             applied, _external_force(sc, t, "right"))

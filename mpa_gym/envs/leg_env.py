@@ -7,9 +7,20 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
-from mpa_gym.envs.sim import O_R, O_TERM, SimEngine
-from mpa_gym.model.params import DEFAULT_PARAMS, Params
-from mpa_gym.task.config import TaskConfig, action_space, observation_space
+from mpa_gym.envs.sim import SimEngine
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.task.config import TaskConfig
+from mpa_gym.task.contract import (
+    O_R,
+    O_TERM,
+    ST_PE,
+    ST_PF,
+    ST_X,
+    action_space,
+    check_action,
+    obs_table,
+    observation_space,
+)
 from mpa_gym.task.plan import TaskPlan, make_plan
 
 
@@ -52,18 +63,10 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Observation Space
 
-    `Box(float32, (8,))`, measured through the rig's sensors (encoder quantum and noise):
+    `Box(float32, (8,))`, measured through the rig's sensors (encoder quantum and noise); the
+    layout is `mpa_gym.task.contract.OBS_COLUMNS`:
 
-    | Num | Observation | Unit | Min | Max |
-    |-----|-------------|------|-----|-----|
-    | 0 | hip height X | m | 0 | 1 |
-    | 1 | hip velocity V | m/s | −10 | 10 |
-    | 2 | reference X̂ | m | 0 | 1 |
-    | 3 | reference V̂ | m/s | −10 | 10 |
-    | 4 | sin(2π t / T) (phase of the reference) | – | −1 | 1 |
-    | 5 | cos(2π t / T) | – | −1 | 1 |
-    | 6 | measured P'_e | bar | −1 | p_max + 1 |
-    | 7 | measured P'_f | bar | −1 | p_max + 1 |
+    <observation table>
 
     Hidden plant parameters (mass, load, γ, C1, C2, bladder thickness, regulator lag) are never
     observed.
@@ -100,7 +103,10 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
     - `render_mode`: `"rgb_array"` or `"human"`.
 
     `reset(options={"plant": {...}, "initial_state": {"x_m": .., "v_mps": ..}})` fixes any plant
-    field (e.g. `{"mass_kg": 4.2}`) or the start for that episode.
+    field (e.g. `{"mass_kg": 4.2}`) or the start for that episode. `options={"homing": True}`
+    (or a dict of `HomingConfig` fields) starts the episode as the rig's reset does: both MPAs
+    vented, the leg at its vented rest (or at `initial_state`), then closed-loop homing to the
+    start (`mpa_gym.task.homing`); `info["homing_s"]` says how long it took.
 
     `info` on every step: `x_m`, `x_ref_m`, `k_N_per_m`, `k_ref_N_per_m`, `pressure_cmd_bar` and
     `pressure_bar` (extensor, flexor), the reward terms, `safety` (bit 1: clipped, bit 2: slew
@@ -149,18 +155,18 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._done = False
         if self.render_mode == "human":
             self.render()
-        return self.engine.obs[0].astype(np.float32), self.engine.info(0)
+        info = self.engine.info(0)
+        if options and options.get("homing"):
+            info["homing_s"] = float(self.engine.homing_s[0])
+        return self.engine.obs[0].astype(np.float32), info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() called on a finished (or never started) episode: call "
                                "reset() first")
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"action has shape {a.shape}; expected (2,) (extensor, flexor) in "
-                             "[-1, 1]")
+        a = check_action(action)
         e = self.engine
-        e.step(a.reshape(1, 2), self._rngs)  # NaN/inf raise there; the rest is clipped
+        e.step(a.reshape(1, 2), self._rngs)
         out = e.out[0]
         terminated = out[O_TERM] > 0.0
         truncated = bool(e.truncated[0]) and not terminated
@@ -183,8 +189,8 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
                                          fps=self.metadata["render_fps"])
         e = self.engine
         j = int(e.idx[0] - e.start[0])
-        frame = self._renderer.draw(float(e.state[0, 0]), float(self.plan.x_ref[j]),
-                                    e.state[0, 2:4] / 1e5, float(self.plan.t[j]))
+        frame = self._renderer.draw(float(e.state[0, ST_X]), float(self.plan.x_ref[j]),
+                                    e.state[0, ST_PE:ST_PF + 1] / BAR, float(self.plan.t[j]))
         return frame if self.render_mode == "rgb_array" else None
 
     def close(self) -> None:
@@ -211,11 +217,9 @@ class MPALegResidualEnv(MPALegEnv):
 
     ## Observation Space
 
-    `Box(float32, (9,))`: the 8 observations of `MPALeg-v0` and
+    `Box(float32, (9,))`: the observations of `MPALeg-v0` and the stiffness target:
 
-    | Num | Observation | Unit | Min | Max |
-    |-----|-------------|------|-----|-----|
-    | 8 | stiffness target k̂(t) | kN/m | −100 | 100 |
+    <observation table>
 
     ## Rewards
 
@@ -233,3 +237,9 @@ class MPALegResidualEnv(MPALegEnv):
     """
 
     residual = True
+
+
+# The observation tables of the docstrings are the step contract's (task.contract).
+for _cls in (MPALegEnv, MPALegResidualEnv):
+    _cls.__doc__ = (_cls.__doc__ or "").replace(
+        "<observation table>", obs_table(_cls.residual).replace("\n", "\n    "))

@@ -3,8 +3,10 @@ that owns the batch's state. ``MPALegEnv`` is a batch of one, ``MPALegVectorEnv`
 both call the same kernel, so they agree step for step by construction (and a test says so).
 
 Per step and leg: action → pressure command (direct or feedforward + residual) → safety layer
-(slew limit, clip to [0, p_max]) → regulator (quantisation, dead time, first-order lag inside the
-RK4 step) → plant (Eq. 15, RK4 over one control period) → true stiffness (Eq. 23) → reward,
+(slew limit, clip to [0, p_max]) → regulator (quantisation, then dead time, slew limit and
+first-order lag solved exactly inside the RK4 steps; a dead time that is not a whole number of
+control periods switches the command inside the period) → plant (Eq. 15 with the braid and
+slider friction, RK4 over one control period) → true stiffness (Eq. 23) → reward,
 termination → sensors (encoder quantum, white noise) → observation.
 """
 
@@ -24,47 +26,74 @@ from mpa_gym.analysis.scenario import (
 )
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
-from mpa_gym.task.config import TaskConfig
-from mpa_gym.task.kernels import command_from_action, reward_terms, safe_command
+from mpa_gym.task.config import END_STOPS_M, TaskConfig
+from mpa_gym.task.contract import (
+    O_CMDE,
+    O_CMDF,
+    O_FLAGS,
+    O_K,
+    O_R,
+    O_RK,
+    O_RU,
+    O_RX,
+    O_TERM,
+    OUT,
+    ST_PE,
+    ST_PF,
+    ST_V,
+    ST_X,
+    STATE,
+    T_FEXT,
+    T_FFE,
+    T_FFF,
+    T_KREF,
+    T_XREF,
+    obs_spec,
+    step_info,
+)
+from mpa_gym.task.homing import (
+    HomingConfig,
+    HomingController,
+    HomingError,
+    vented_rest,
+)
+from mpa_gym.task.kernels import command_from_action, observe, reward_terms, safe_command
 from mpa_gym.task.plan import TaskPlan
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
-
-# Columns of the per-step table (TaskPlan arrays side by side, row j = step j).
-T_XREF, T_VREF, T_KREF, T_SIN, T_COS, T_FFE, T_FFF, T_FEXT = range(8)
-# Entries of the scalar settings vector.
+# The scalar settings vector the compiled step reads, packed by name (``pack_settings``).
+SETTINGS = ("residual", "residual_scale_Pa", "p_max_Pa", "max_delta_Pa", "quantum_Pa", "dt_s",
+            "x_min_m", "x_max_m", "sigma_x_m", "sigma_k", "w_k", "w_u", "encoder_m", "substeps")
 (S_RESIDUAL, S_SCALE, S_PMAX, S_DMAX, S_QUANTUM, S_DT, S_XLO, S_XHI, S_SIGX, S_SIGK, S_WK, S_WU,
- S_ENC, S_SUB) = range(14)
-# Columns of the per-leg output: command (2), true k, reward and its three terms, flags, terminated.
-O_CMDE, O_CMDF, O_K, O_R, O_RX, O_RK, O_RU, O_FLAGS, O_TERM = range(9)
+ S_ENC, S_SUB) = (SETTINGS.index(n) for n in SETTINGS)
+
+
+def pack_settings(**values: float) -> np.ndarray:
+    """The settings vector from its named entries (all of ``SETTINGS``, no others)."""
+    if set(values) != set(SETTINGS):
+        raise ValueError(f"settings: got {sorted(values)}; expected {sorted(SETTINGS)}")
+    return np.array([float(values[k]) for k in SETTINGS], dtype=np.float64)
 
 
 @numba.njit(**JIT)
-def _observe(obs, i, X, V, Pe, Pf, j, noise, enc, tab):
+def _observe(obs, i, X, V, Pe, Pf, j, noise, enc, tab, spec):
+    """Observation row i: the encoder quantises X, then ``task.kernels.observe``."""
     x_meas = X if enc <= 0.0 else np.round(X / enc) * enc
-    obs[i, 0] = x_meas + noise[i, 0]
-    obs[i, 1] = V + noise[i, 1]
-    obs[i, 2] = tab[j, T_XREF]
-    obs[i, 3] = tab[j, T_VREF]
-    obs[i, 4] = tab[j, T_SIN]
-    obs[i, 5] = tab[j, T_COS]
-    obs[i, 6] = Pe / 1e5 + noise[i, 2]
-    obs[i, 7] = Pf / 1e5 + noise[i, 3]
-    if obs.shape[1] > 8:
-        obs[i, 8] = tab[j, T_KREF] / 1000.0
+    observe(obs[i], x_meas, V, Pe, Pf, tab[j], noise[i], spec)
 
 
 @numba.njit(**JIT)
-def observe_rows(obs, rows, state, idx, noise, enc, tab):
+def observe_rows(obs, rows, state, idx, noise, enc, tab, spec):
     """Write the observation of the legs in ``rows`` (after a reset)."""
     for i in rows:
-        _observe(obs, i, state[i, 0], state[i, 1], state[i, 2], state[i, 3], idx[i], noise, enc,
-                 tab)
+        _observe(obs, i, state[i, ST_X], state[i, ST_V], state[i, ST_PE], state[i, ST_PF], idx[i],
+                 noise, enc, tab, spec)
 
 
 @numba.njit(**JIT)
-def _step_leg(i, action, state, prev_cmd, idx, consts, lag, delay, head, noise, s, tab, obs, out):
+def _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
+              obs, out):
     """One control period of leg i (see the module docstring)."""
     residual = s[S_RESIDUAL] > 0.0
     j = idx[i]
@@ -83,20 +112,24 @@ def _step_leg(i, action, state, prev_cmd, idx, consts, lag, delay, head, noise, 
     if q > 0.0:
         ce = np.round(ce / q) * q
         cf = np.round(cf / q) * q
-    if delay.shape[1] > 0:
-        de, df = delay[i, head, 0], delay[i, head, 1]
-        delay[i, head, 0] = ce
-        delay[i, head, 1] = cf
-        ce, cf = de, df
-    X, V, Pe, Pf = fast.plant_step(state[i, 0], state[i, 1], state[i, 2], state[i, 3], ce, cf,
-                                   tab[j, T_FEXT], lag[i], s[S_DT], consts[i], int(s[S_SUB]))
+    # dead time T_d = n dt + φ: the command of n periods ago takes over at φ into this period
+    cap = hist.shape[1]
+    hist[i, head, 0] = ce
+    hist[i, head, 1] = cf
+    n_d = int(dead[i, 0])
+    new = (head - n_d) % cap
+    old = (head - n_d - 1) % cap
+    X, V, Pe, Pf = fast.plant_step(state[i, ST_X], state[i, ST_V], state[i, ST_PE],
+                                   state[i, ST_PF], hist[i, old, 0], hist[i, old, 1],
+                                   hist[i, new, 0], hist[i, new, 1], dead[i, 1], tab[j, T_FEXT],
+                                   s[S_DT], consts[i], int(s[S_SUB]))
     failed = not (np.isfinite(X) and np.isfinite(V))
     if failed:  # the step left the model's domain: keep the last state, terminate
-        X, V, Pe, Pf = state[i, 0], state[i, 1], state[i, 2], state[i, 3]
-    state[i, 0] = X
-    state[i, 1] = V
-    state[i, 2] = Pe
-    state[i, 3] = Pf
+        X, V, Pe, Pf = state[i, ST_X], state[i, ST_V], state[i, ST_PE], state[i, ST_PF]
+    state[i, ST_X] = X
+    state[i, ST_V] = V
+    state[i, ST_PE] = Pe
+    state[i, ST_PF] = Pf
     _, k = fast.force_and_stiffness(X, V, Pe, Pf, consts[i])
     out[i, O_K] = k
     j += 1
@@ -109,63 +142,38 @@ def _step_leg(i, action, state, prev_cmd, idx, consts, lag, delay, head, noise, 
     out[i, O_RX] = rx if ok else 0.0
     out[i, O_RK] = rk if ok else 0.0
     out[i, O_RU] = ru
-    _observe(obs, i, X, V, Pe, Pf, j, noise, s[S_ENC], tab)
+    _observe(obs, i, X, V, Pe, Pf, j, noise, s[S_ENC], tab, spec)
 
 
 @numba.njit(**JIT)
-def _first_bad_action(action):
-    for i in range(action.shape[0]):
-        if not (np.isfinite(action[i, 0]) and np.isfinite(action[i, 1])):
-            return i
-    return -1
-
-
-@numba.njit(**JIT)
-def step_batch(action, state, prev_cmd, idx, consts, lag, delay, head, noise, s, tab, obs, out):
-    """One control period for every leg of the batch.
-
-    Returns the index of the first leg whose action is not finite (nothing is changed then),
-    or −1. Finite actions are clipped to [−1, 1].
-    """
-    bad = _first_bad_action(action)
-    if bad >= 0:
-        return bad
+def step_batch(action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec, obs,
+               out):
+    """One control period for every leg of the batch (actions checked by the env beforehand
+    with ``task.contract.check_action``; they are clipped to [−1, 1] here)."""
     for i in range(state.shape[0]):
-        _step_leg(i, action, state, prev_cmd, idx, consts, lag, delay, head, noise, s, tab, obs,
-                  out)
-    return -1
+        _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
+                  obs, out)
 
 
 @numba.njit(parallel=True, **JIT)
-def step_batch_parallel(action, state, prev_cmd, idx, consts, lag, delay, head, noise, s, tab,
-                        obs, out):
+def step_batch_parallel(action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab,
+                        spec, obs, out):
     """``step_batch`` with the legs spread over the cores, for large batches (a thread pool has
     a fixed cost of microseconds per call, which a single leg should not pay)."""
-    bad = _first_bad_action(action)
-    if bad >= 0:
-        return bad
     for i in numba.prange(state.shape[0]):
-        _step_leg(i, action, state, prev_cmd, idx, consts, lag, delay, head, noise, s, tab, obs,
-                  out)
-    return -1
+        _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
+                  obs, out)
 
 
 PARALLEL_MIN_LEGS = 256
+RESET_OPTIONS = ("homing", "initial_state", "plant")  # the keys reset(options=...) takes
 
 
 # Plant fields each leg of a batch may have its own value of (the rest belong to the rig).
 PER_LEG_FIELDS = frozenset({"extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa",
-                            "thickness_m", "pressure_lag_s", *INITIAL_OFFSETS})
-
-
-def _table(plan: TaskPlan) -> np.ndarray:
-    """The per-step table of one plan, (n_steps + 1, 8) with the T_* columns."""
-    tab = np.zeros((plan.n_steps + 1, 8))
-    tab[:, T_XREF], tab[:, T_VREF], tab[:, T_KREF] = plan.x_ref, plan.v_ref, plan.k_ref
-    tab[:, T_SIN], tab[:, T_COS] = plan.sin_phase, plan.cos_phase
-    tab[:-1, T_FFE:T_FFF + 1] = plan.ff
-    tab[:-1, T_FEXT] = plan.f_ext
-    return tab
+                            "thickness_m", "pressure_lag_s", "pressure_dead_time_s",
+                            "pressure_slew_bar_per_s", "braid_friction_ratio",
+                            "slider_friction_N", "slider_viscous_Ns_per_m", *INITIAL_OFFSETS})
 
 
 def resolve_plant(base: Plant, draws: dict[str, float], fixed: dict[str, Any] | None
@@ -203,52 +211,73 @@ class SimEngine:
         self.plan, self.n, self.residual, self.params = plan, int(n), bool(residual), params
         cfg: TaskConfig = plan.cfg
         self.cfg = cfg
-        self.obs_dim = 9 if residual else 8
+        self.spec = obs_spec(residual)  # the observation layout (task.contract)
+        self.obs_dim = self.spec.shape[0]
         self.w_k = cfg.stiffness_weight(residual)
-        self.state = np.zeros((n, 4))
+        self.state = np.zeros((n, len(STATE)))
         self.prev_cmd = np.zeros((n, 2))
         self.idx = np.zeros(n, dtype=np.int64)  # row of the stacked tables
         self.start = np.zeros(n, dtype=np.int64)  # first row of each leg's plan
         self.base_consts = fast.pack(plan.scenario.plant_params(params))
         self.consts = np.tile(self.base_consts, (n, 1))
-        self.lag = np.zeros(n)
+        # per leg: (whole periods n, remainder φ [s]) of the dead time, and the command history
+        self.dead = np.zeros((n, 2))
+        self.hist = np.zeros((n, 2, 2))
+        self.head = 0
         self.plants: list[Plant] = [plan.scenario.plant] * n
         self.obs = np.zeros((n, self.obs_dim))
-        self.out = np.zeros((n, 9))
-        self.noise = np.zeros((n, 4))
-        self.head = 0
+        self.out = np.zeros((n, len(OUT)))
+        self.noise = np.zeros((n, len(STATE)))  # sensor noise of each STATE signal, SI
+        self.homing_s = np.zeros(n)  # [s] how long each leg's last homing took (sim time)
         self.rows_per_plan = plan.n_steps + 1
-        self.tab = np.concatenate([_table(p) for p in plans])
+        self.tab = np.concatenate([p.table() for p in plans])
         self._configure_shared(plan.scenario.plant)
 
     def _configure_shared(self, pl: Plant) -> None:
-        """Regulator quantum, dead time and sensors are the rig's, shared by the batch."""
+        """Regulator quantum and sensors are the rig's, shared by the batch."""
         c = self.cfg
-        self.settings = np.array([
-            1.0 if self.residual else 0.0, c.residual_scale_bar * BAR, c.p_max_bar * BAR,
-            c.max_delta_Pa, pl.pressure_quantum_bar * BAR, c.dt_s, c.x_min_m, c.x_max_m,
-            c.sigma_x_m, c.sigma_k, self.w_k, c.w_effort, pl.encoder_resolution_m,
-            float(c.substeps)])
-        self.noise_std = np.array([pl.position_noise_m, pl.velocity_noise_mps,
-                                   pl.pressure_noise_bar * BAR / 1e5,
-                                   pl.pressure_noise_bar * BAR / 1e5])
+        self.settings = pack_settings(
+            residual=1.0 if self.residual else 0.0, residual_scale_Pa=c.residual_scale_bar * BAR,
+            p_max_Pa=c.p_max_bar * BAR, max_delta_Pa=c.max_delta_Pa,
+            quantum_Pa=pl.pressure_quantum_bar * BAR, dt_s=c.dt_s, x_min_m=c.x_min_m,
+            x_max_m=c.x_max_m, sigma_x_m=c.sigma_x_m, sigma_k=c.sigma_k, w_k=self.w_k,
+            w_u=c.w_effort, encoder_m=pl.encoder_resolution_m, substeps=c.substeps)
+        std = {"x_m": pl.position_noise_m, "v_mps": pl.velocity_noise_mps,
+               "pe_Pa": pl.pressure_noise_bar * BAR, "pf_Pa": pl.pressure_noise_bar * BAR}
+        self.noise_std = np.array([std[name] for name in STATE])  # SI, per STATE signal
         self.has_noise = bool(self.noise_std.any())
-        n_delay = round(pl.pressure_dead_time_s / self.cfg.dt_s)
-        if not hasattr(self, "delay") or self.delay.shape[1] != n_delay:
-            self.delay = np.zeros((self.n, n_delay, 2))
-            self.head = 0
+
+    def _set_dead_time(self, i: int, dead_time_s: float) -> None:
+        """Leg i's dead time as whole periods + remainder; grows the history if it must."""
+        dt = self.cfg.dt_s
+        n_d = int(np.floor(dead_time_s / dt + 1e-9))
+        frac = max(dead_time_s - n_d * dt, 0.0)
+        if frac < 1e-12 * dt:
+            frac = 0.0
+        self.dead[i] = (n_d, frac)
+        cap = self.hist.shape[1]
+        if n_d + 2 > cap:  # keep every leg's history: the same lags map to the same entries
+            new = np.zeros((self.n, n_d + 2, 2))
+            for k in range(cap):
+                new[:, (self.head - k) % new.shape[1]] = self.hist[:, (self.head - k) % cap]
+            self.hist = new
 
     def draw_noise(self, rows: Any, rngs: list[np.random.Generator]) -> None:
         """Sensor noise for ``rows``, each from its own generator (so legs are independent)."""
         if not self.has_noise:
             return
         for i in rows:
-            self.noise[i] = rngs[i].standard_normal(4) * self.noise_std
+            self.noise[i] = rngs[i].standard_normal(len(STATE)) * self.noise_std
 
     def reset_rows(self, rows: Any, rngs: list[np.random.Generator],
                    options: dict[str, Any] | None = None) -> None:
-        """Start new episodes for ``rows``: draw (or fix) the plant, the initial state."""
+        """Start new episodes for ``rows``: draw (or fix) the plant, the initial state; with
+        ``options["homing"]``, home each leg to the start as the rig's reset does."""
         rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        homing = None
+        if isinstance(options, dict) and "homing" in options:  # the rest is checked below
+            homing = HomingConfig.from_option(options["homing"])
+            options = {k: v for k, v in options.items() if k != "homing"}
         fixed, x0, v0 = self._reset_options(options)
         sc = self.plan.scenario
         if len(self.plans) > 1:  # each new episode follows one of the designs
@@ -256,54 +285,116 @@ class SimEngine:
         else:
             which = np.zeros(rows.size, dtype=np.int64)
         p0 = np.array([p.p0 for p in self.plans])[which]
-        per_leg = bool(sc.randomize.ranges) or any(k in PER_LEG_FIELDS for k in fixed or {})
+        if isinstance(fixed, list):  # one plant per leg (a batch of different rigs)
+            per_leg, fixed_of = True, fixed
+        else:
+            per_leg = bool(sc.randomize.ranges) or any(k in PER_LEG_FIELDS for k in fixed or {})
+            fixed_of = [fixed] * self.n
         dx = np.zeros(rows.size)
         dv = np.zeros(rows.size)
         if per_leg:  # each leg its own plant
             for r, i in enumerate(rows):
-                plant, dx[r], dv[r] = resolve_plant(sc.plant, sc.randomize.sample(rngs[i]), fixed)
+                plant, dx[r], dv[r] = resolve_plant(sc.plant, sc.randomize.sample(rngs[i]),
+                                                    fixed_of[i])
                 try:
                     self.consts[i] = fast.pack(sc.plant_params(self.params, plant))
                 except ValueError as e:
                     raise ScenarioError(f"episode plant is invalid: {e}") from None
                 self.plants[i] = plant
-                self.lag[i] = plant.pressure_lag_s
+                self._set_dead_time(i, plant.pressure_dead_time_s)
         else:  # the scenario's plant for every leg: no per-leg work
             self.consts[rows] = self.base_consts
-            self.lag[rows] = sc.plant.pressure_lag_s
             for i in rows:
                 self.plants[i] = sc.plant
-        self.state[rows, 0] = x0 + dx
-        self.state[rows, 1] = v0 + dv
-        self.state[rows, 2:] = p0
+                self._set_dead_time(i, sc.plant.pressure_dead_time_s)
+        self.state[rows, ST_X] = x0 + dx
+        self.state[rows, ST_V] = v0 + dv
+        self.state[rows, ST_PE:ST_PF + 1] = p0
         self.prev_cmd[rows] = p0
-        self.delay[rows] = p0[:, None, :]
+        self.hist[rows] = p0[:, None, :]
+        if homing is not None:
+            start = options.get("initial_state") is not None
+            for r, i in enumerate(rows):
+                self._home_row(i, homing, self.plans[which[r]],
+                               (x0 + dx[r], v0 + dv[r]) if start else None)
         self.idx[rows] = self.start[rows] = which * self.rows_per_plan
         self.out[rows] = 0.0
-        self.out[rows, O_CMDE:O_CMDF + 1] = p0
+        self.out[rows, O_CMDE:O_CMDF + 1] = self.prev_cmd[rows]
         self.out[rows, O_K] = [fast.force_and_stiffness(*self.state[i], self.consts[i])[1]
-                               for i in (rows if per_leg else rows[:1])]
+                               for i in (rows if per_leg or homing else rows[:1])]
         self.draw_noise(rows, rngs)
         observe_rows(self.obs, rows, self.state, self.idx, self.noise, self.settings[S_ENC],
-                     self.tab)
+                     self.tab, self.spec)
+
+    def _home_row(self, i: int, cfg: HomingConfig, plan: TaskPlan,
+                  start: tuple[float, float] | None) -> None:
+        """Home leg i (``mpa_gym.task.homing``) from ``start`` (X, V) with both MPAs vented, or
+        from its vented rest, through its own plant (lag, dead time, end stops); the episode then
+        starts from the homed state, with the homing's command as the slew limit's last one and
+        its commands still in the dead-time line. Raises ``HomingError`` like the rig's reset."""
+        c = self.consts[i]
+        x, v = (vented_rest(c), 0.0) if start is None else start
+        pe = pf = 0.0
+        ctrl = HomingController(cfg, float(plan.x_ref[0]), plan.p0, self.cfg.dt_s,
+                                self.cfg.p_max_bar * BAR, self.params)
+        ctrl.start(x, np.zeros(2))
+        n_d, phi = int(self.dead[i, 0]), float(self.dead[i, 1])
+        past = [np.zeros(2)] * (n_d + 1)  # vented: what the regulators were last told
+        lo, hi = END_STOPS_M
+        sub = int(self.settings[S_SUB])
+        while True:  # the dead time as in the kernel: old command until φ, then new
+            past = [*past[-(n_d + 1):], ctrl.command(x, v).copy()]
+            new, old = past[-1 - n_d], past[-2 - n_d]
+            x, v, pe, pf = fast.plant_step(x, v, pe, pf, old[0], old[1], new[0], new[1], phi,
+                                           0.0, self.cfg.dt_s, c, sub)
+            if not (np.isfinite(x) and np.isfinite(v)):
+                raise HomingError(f"homing (sim): leg {i} left the model's domain")
+            if not lo <= x <= hi:  # the rig's end stops
+                x, v = min(max(x, lo), hi), 0.0
+            if ctrl.done and ctrl.arrived(x, v):  # hand over only within the tolerances
+                break
+        self.state[i, [ST_X, ST_V, ST_PE, ST_PF]] = (x, v, pe, pf)
+        self.prev_cmd[i] = ctrl.cmd
+        cap = self.hist.shape[1]
+        for k, cmd in enumerate(reversed(past)):  # the latest at the slot before the write head
+            self.hist[i, (self.head - 1 - k) % cap] = cmd
+        self.homing_s[i] = ctrl.t
 
     def _reset_options(self, options: dict[str, Any] | None
                        ) -> tuple[dict[str, Any] | None, float, float]:
         """Validate reset options; apply rig-wide ones; return (per-leg plant fields, X0, V0)."""
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"reset options={options!r} must be a dict with the keys "
+                             f"{list(RESET_OPTIONS)} (each optional)")
         options = dict(options or {})
-        unknown = sorted(set(options) - {"plant", "initial_state"})
+        unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
         if unknown:
             raise ValueError(f"reset options: unknown key(s) {unknown}; allowed keys are "
-                             "['initial_state', 'plant']")
+                             f"{list(RESET_OPTIONS)}")
         fixed = options.get("plant")
+        if isinstance(fixed, list | tuple):  # per leg: only the fields a leg may have its own of
+            if len(fixed) != self.n or not all(isinstance(f, dict) for f in fixed):
+                raise ValueError(f"options['plant'] as a list must hold one dict of plant fields "
+                                 f"per leg ({self.n}), got {fixed!r}")
+            for i, f in enumerate(fixed):
+                rig = sorted(set(f) - PER_LEG_FIELDS)
+                if rig:
+                    raise ValueError(f"options['plant'][{i}]: {rig} belong to the whole rig; "
+                                     "give them in a single dict, not per leg")
+            return list(fixed), *self._start_state(options)
         if fixed is not None and not isinstance(fixed, dict):
-            raise ValueError(f"options['plant'] must be a dict of plant fields, got {fixed!r}")
+            raise ValueError(f"options['plant'] must be a dict of plant fields (or a list of "
+                             f"one per leg), got {fixed!r}")
         sc = self.plan.scenario
         shared = {k: check_plant_value(k, v, "options['plant']") for k, v in (fixed or {}).items()
                   if k not in PER_LEG_FIELDS}
         if shared:
             self._configure_shared(dataclasses.replace(sc.plant, **shared))
-        x0, v0 = sc.start_state()
+        return fixed, *self._start_state(options)
+
+    def _start_state(self, options: dict[str, Any]) -> tuple[float, float]:
+        """(X0, V0): the scenario's, or options['initial_state']."""
+        x0, v0 = self.plan.scenario.start_state()
         init = options.get("initial_state")
         if init is not None:
             try:
@@ -315,24 +406,17 @@ class SimEngine:
             if not (lo <= x0 <= hi and np.isfinite(v0)):
                 raise ValueError(f"options['initial_state'].x_m={x0} must lie in the position "
                                  f"bounds [{lo}, {hi}] m and v_mps={v0} must be finite")
-        return fixed, x0, v0
+        return x0, v0
 
     def step(self, action: np.ndarray, rngs: list[np.random.Generator]) -> None:
-        """Advance every leg one control period (action: (n, 2) float64; clipped to [−1, 1]).
-
-        Raises ValueError, changing nothing, if an action is NaN or infinite."""
+        """Advance every leg one control period (action: (n, 2) float64, as
+        ``task.contract.check_action`` returns it)."""
         if self.has_noise:
             self.draw_noise(range(self.n), rngs)
         kernel = step_batch_parallel if self.n >= PARALLEL_MIN_LEGS else step_batch
-        bad = kernel(action, self.state, self.prev_cmd, self.idx, self.consts, self.lag,
-                         self.delay, self.head, self.noise, self.settings, self.tab, self.obs,
-                         self.out)
-        if bad >= 0:
-            where = f"action[{bad}]" if self.n > 1 else "action"
-            raise ValueError(f"{where}={action[bad].tolist()} must be finite; allowed range "
-                             "[-1, 1] (extensor, flexor)")
-        if self.delay.shape[1]:
-            self.head = (self.head + 1) % self.delay.shape[1]
+        kernel(action, self.state, self.prev_cmd, self.idx, self.consts, self.dead, self.hist,
+               self.head, self.noise, self.settings, self.tab, self.spec, self.obs, self.out)
+        self.head = (self.head + 1) % self.hist.shape[1]
 
     @property
     def truncated(self) -> np.ndarray:
@@ -343,23 +427,14 @@ class SimEngine:
         """The plan leg i follows in its current episode."""
         return self.plans[int(self.start[i] // self.rows_per_plan)]
 
-    def info(self, i: int) -> dict[str, Any]:
-        """The step info of leg i (DESIGN.md keys, the reward terms, safety flags)."""
+    def info(self, i: int | None = None) -> dict[str, Any]:
+        """The step info (``task.contract.step_info``) of leg i, or of every leg as arrays."""
+        if i is None:
+            j = self.idx
+            return step_info(self.out, self.state, self.tab[j], (j - self.start) * self.cfg.dt_s)
         j = int(self.idx[i])
-        o = self.out[i]
-        return {
-            "x_m": float(self.state[i, 0]),
-            "x_ref_m": float(self.tab[j, T_XREF]),
-            "k_N_per_m": float(o[O_K]),
-            "k_ref_N_per_m": float(self.tab[j, T_KREF]),
-            "pressure_cmd_bar": o[O_CMDE:O_CMDF + 1] / BAR,
-            "pressure_bar": self.state[i, 2:4] / BAR,
-            "reward_position": float(o[O_RX]),
-            "reward_stiffness": float(o[O_RK]),
-            "reward_effort": float(o[O_RU]),
-            "safety": int(o[O_FLAGS]),
-            "t_s": (j - int(self.start[i])) * self.cfg.dt_s,
-        }
+        return step_info(self.out[i], self.state[i], self.tab[j],
+                         (j - int(self.start[i])) * self.cfg.dt_s)
 
 
 __all__ = ["SimEngine", "observe_rows", "resolve_plant", "step_batch"]

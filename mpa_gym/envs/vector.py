@@ -19,22 +19,10 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from mpa_gym.envs.leg_env import make_plans, task_config
-from mpa_gym.envs.sim import (
-    O_CMDE,
-    O_CMDF,
-    O_FLAGS,
-    O_K,
-    O_R,
-    O_RK,
-    O_RU,
-    O_RX,
-    O_TERM,
-    T_KREF,
-    T_XREF,
-    SimEngine,
-)
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
-from mpa_gym.task.config import TaskConfig, action_space, observation_space
+from mpa_gym.envs.sim import SimEngine
+from mpa_gym.model.params import DEFAULT_PARAMS, Params
+from mpa_gym.task.config import TaskConfig
+from mpa_gym.task.contract import O_R, O_TERM, action_space, check_action, observation_space
 
 
 class MPALegVectorEnv(VectorEnv):
@@ -99,10 +87,7 @@ class MPALegVectorEnv(VectorEnv):
                                           dict[str, Any]]:
         if not self._rngs:
             raise RuntimeError("step() called before reset()")
-        a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (self.num_envs, 2):
-            raise ValueError(f"actions have shape {a.shape}; expected ({self.num_envs}, 2) "
-                             "(extensor, flexor) in [-1, 1]")
+        a = check_action(actions, self.num_envs)
         e = self.engine
         e.step(a, self._rngs)
         terminated = e.out[:, O_TERM] > 0.0
@@ -127,22 +112,7 @@ class MPALegVectorEnv(VectorEnv):
         return e.obs.astype(np.float32), rewards, terminated, truncated, infos
 
     def _infos(self) -> dict[str, Any]:
-        e = self.engine
-        j = e.idx
-        out = e.out
-        return {
-            "x_m": e.state[:, 0].copy(),
-            "x_ref_m": e.tab[j, T_XREF],
-            "k_N_per_m": out[:, O_K].copy(),
-            "k_ref_N_per_m": e.tab[j, T_KREF],
-            "pressure_cmd_bar": out[:, O_CMDE:O_CMDF + 1] / BAR,
-            "pressure_bar": e.state[:, 2:4] / BAR,
-            "reward_position": out[:, O_RX].copy(),
-            "reward_stiffness": out[:, O_RK].copy(),
-            "reward_effort": out[:, O_RU].copy(),
-            "safety": out[:, O_FLAGS].astype(np.int64),
-            "t_s": (j - e.start) * self.cfg.dt_s,
-        }
+        return self.engine.info()
 
 
 class MPALegResidualVectorEnv(MPALegVectorEnv):

@@ -1,5 +1,6 @@
 """Compiled task logic shared by the sim kernels and the hardware env: action to command,
-the safety layer (slew limit then clip) and the reward terms. Scalars in, scalars out."""
+the safety layer (slew limit then clip), the reward terms and the observation (its layout is
+``task.contract``'s). Scalars in, scalars out, but for the observation row."""
 
 from __future__ import annotations
 
@@ -7,6 +8,9 @@ import math
 
 import numba
 
+from mpa_gym.task.contract import SAFETY_CLIPPED, SAFETY_SLEW, STATE
+
+N_STATE = len(STATE)
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
@@ -24,16 +28,16 @@ def safe_command(cmd, prev, p_max, max_delta):
     flags = 0
     if cmd > prev + max_delta:
         cmd = prev + max_delta
-        flags |= 2
+        flags |= SAFETY_SLEW
     elif cmd < prev - max_delta:
         cmd = prev - max_delta
-        flags |= 2
+        flags |= SAFETY_SLEW
     if cmd > p_max:
         cmd = p_max
-        flags |= 1
+        flags |= SAFETY_CLIPPED
     elif cmd < 0.0:
         cmd = 0.0
-        flags |= 1
+        flags |= SAFETY_CLIPPED
     return cmd, flags
 
 
@@ -52,3 +56,17 @@ def reward_terms(err_x, k, k_ref, a_e, a_f, sigma_x, sigma_k, w_k, w_u):
     rk = w_k / (1.0 + rel * rel) if math.isfinite(k) else 0.0
     ru = -w_u * (a_e * a_e + a_f * a_f)
     return rx + rk + ru, rx, rk, ru
+
+
+@numba.njit(**JIT)
+def observe(obs, x, v, pe, pf, ref, noise, spec):
+    """Fill one observation row from the measured state (x, v, pe, pf: the STATE signals, SI),
+    the plan's row ``ref`` (the PLAN signals) and the sensor noise of each state signal (SI),
+    following ``spec`` (``task.contract.obs_spec``): column c = (signal + its noise) / divisor."""
+    for c in range(spec.shape[0]):
+        s = int(spec[c, 0])
+        if s < N_STATE:
+            val = ((x, v, pe, pf)[s] + noise[s]) / spec[c, 1]
+        else:
+            val = ref[s - N_STATE] / spec[c, 1]
+        obs[c] = val

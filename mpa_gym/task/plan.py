@@ -14,14 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from mpa_gym.analysis.scenario import Scenario, load_scenario
-from mpa_gym.design.feedforward import (
-    ConstantStiffness,
-    FeedforwardDesign,
-    StiffnessEnvelope,
-    StiffnessProfile,
-)
+from mpa_gym.analysis.scenario import Inputs, Scenario, load_scenario
+from mpa_gym.design.feedforward import FeedforwardDesign, StiffnessProfile
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.task import contract as C
 from mpa_gym.task.config import TaskConfig
 
 
@@ -31,11 +27,10 @@ def stiffness_design(scenario: Scenario, stiffness: Any, params: Params) -> Feed
     ref = scenario.reference
     if stiffness is None:
         return scenario.design(params)
-    if isinstance(stiffness, str):
-        return FeedforwardDesign(ref, stiffness=StiffnessEnvelope(stiffness, ref, params=params),
-                                 params=params)
+    if isinstance(stiffness, str) and stiffness in ("kmax", "kmin"):
+        return Inputs(stiffness=stiffness).design(ref, params)
     if isinstance(stiffness, int | float) and not isinstance(stiffness, bool):
-        return FeedforwardDesign(ref, stiffness=ConstantStiffness(float(stiffness)), params=params)
+        return Inputs(stiffness_const_N_per_m=float(stiffness)).design(ref, params)
     if isinstance(stiffness, dict) and set(stiffness) == {"t_s", "k_N_per_m"}:
         prof = StiffnessProfile(tuple(map(float, stiffness["t_s"])),
                                 tuple(map(float, stiffness["k_N_per_m"])), ref.period)
@@ -59,6 +54,16 @@ class TaskPlan:
     ff: np.ndarray  # [Pa] (n, 2) feedforward command of step i (mid-step)
     f_ext: np.ndarray  # [N] (n,) mean disturbance force over step i
     p0: np.ndarray  # [Pa] (2,) pressures at t = 0 (the design's)
+
+    def table(self) -> np.ndarray:
+        """The plan as one (n_steps + 1, len(PLAN)) array, row j = step j, columns the PLAN
+        signals of ``task.contract`` (the feedforward and disturbance rows stop at n − 1)."""
+        tab = np.zeros((self.n_steps + 1, len(C.PLAN)))
+        tab[:, C.T_XREF], tab[:, C.T_VREF], tab[:, C.T_KREF] = self.x_ref, self.v_ref, self.k_ref
+        tab[:, C.T_SIN], tab[:, C.T_COS] = self.sin_phase, self.cos_phase
+        tab[:-1, C.T_FFE], tab[:-1, C.T_FFF] = self.ff[:, 0], self.ff[:, 1]
+        tab[:-1, C.T_FEXT] = self.f_ext
+        return tab
 
 
 def make_plan(scenario: Any = "nominal", stiffness: Any = None, cfg: TaskConfig | None = None,
