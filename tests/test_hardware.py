@@ -11,44 +11,41 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import serving
 
 import mpa_gym  # noqa: F401
 from agents.rollout import read_log
 from mpa_gym.hardware import protocol as proto
-from mpa_gym.hardware.emulator import Emulator, LinkFaults
+from mpa_gym.hardware.emulator import LinkFaults
 from mpa_gym.hardware.env import HardwareLegEnv
-from mpa_gym.hardware.transport import PtyPair, UDPServer
 
 TASK = {"episode_s": 1.0}
 
 
-def serve(kind, **kw):
-    link = UDPServer("127.0.0.1", 0) if kind == "udp" else PtyPair()
-    url = (f"udp://127.0.0.1:{link.address[1]}" if kind == "udp"
-           else f"serial://{link.slave_path}")
-    emu = Emulator(link, "nominal", **kw)
-    return url, emu, link, emu.start_thread()
+REAL_RIG = {"name": "real_rig", "duration_s": 30.0,
+            "plant": {"pressure_dead_time_s": 0.0237, "pressure_lag_s": 0.03,
+                      "pressure_slew_bar_per_s": 8.0, "braid_friction_ratio": 0.03,
+                      "slider_friction_N": 1.5, "slider_viscous_Ns_per_m": 3.0}}
 
 
 @pytest.fixture(params=["udp", "serial"])
 def rig(request):
     """(device URL, emulator) with the emulator serving in a thread."""
-    url, emu, link, thread = serve(request.param)
-    yield url, emu
-    emu.stop()
-    thread.join(timeout=2.0)
-    link.close()
+    with serving(request.param) as served:
+        yield served
 
 
-def compare_with_sim(url, n=100):
+def compare_with_sim(url, n=100, scenario="nominal", substeps=2):
     """(max |X_hw − X_sim|, max |V|, max timing slip [s]) over n steps of the same random
     residuals; the slip is the largest period error plus the largest command latency."""
-    sim = gym.make("MPALegResidual-v0", task=TASK)
+    sim = gym.make("MPALegResidual-v0", task={**TASK, "substeps": substeps}, scenario=scenario)
     sim.reset(seed=0)
     sim.step(np.zeros(2))  # compile the sim's kernels now, not while the rig waits for commands
     # stale_s and the emulator's watchdog are relaxed here: these tests compare trajectories,
     # and a scheduling hiccup of the shared 2-core test machine must not stop the episode
-    with HardwareLegEnv(url, residual=True, task=TASK, settle_s=0.3, stale_s=0.2) as hw:
+    # homing=None: the open-loop start the sim env starts from too (homing is tested apart)
+    with HardwareLegEnv(url, residual=True, task=TASK, settle_s=0.3, stale_s=0.2,
+                        homing=None) as hw:
         obs, _ = hw.reset(seed=0)
         sobs, _ = sim.reset(seed=0, options={"initial_state": {"x_m": float(obs[0]),
                                                                "v_mps": float(obs[1])}})
@@ -74,14 +71,27 @@ def test_lockstep_emulator_agrees_with_the_sim_env_exactly(kind):
     # The emulator advancing exactly one 10 ms period per command (its 1 ms RK4 steps against
     # the sim's 5 ms ones, and float32 pressures and velocity on the wire) matches the sim env
     # to 1e-6 m: the env, protocol and transport add nothing of their own.
-    url, emu, link, thread = serve(kind, lockstep_dt_s=0.01, watchdog_s=0.5)
-    try:
+    with serving(kind, lockstep_dt_s=0.01, watchdog_s=0.5) as (url, _emu):
         err, _, _ = compare_with_sim(url)
         assert err < 1e-6
-    finally:
-        emu.stop()
-        thread.join(timeout=2.0)
-        link.close()
+
+
+@pytest.mark.parametrize("kind", ["udp"])
+def test_lockstep_emulator_plays_the_real_rig_effects_as_the_sim_does(kind):
+    # The emulator's own implementation of the dead time (a queue of timed commands, its 1 ms
+    # steps split where one falls due) with the slew limit, lag, braid and slider friction,
+    # against the sim env's (a command history indexed per control period): both at 23.7 ms
+    # dead time, which is not a whole number of periods. The sim takes the emulator's 1 ms RK4
+    # steps here (10 substeps), so what is left is float32 on the wire: the nominal lockstep
+    # test's 1e-6 m. A dead time rounded to 20 ms is off by far more (checked below).
+    with serving(kind, REAL_RIG, lockstep_dt_s=0.01, watchdog_s=0.5) as (url, _emu):
+        err, vmax, _ = compare_with_sim(url, scenario=REAL_RIG, substeps=10)
+    assert vmax > 0.01  # the residuals move the leg: the comparison is not of two rests
+    assert err < 1e-6
+    rounded = {**REAL_RIG, "plant": {**REAL_RIG["plant"], "pressure_dead_time_s": 0.02}}
+    with serving(kind, rounded, lockstep_dt_s=0.01, watchdog_s=0.5) as (url, _emu):
+        err_rounded, _, _ = compare_with_sim(url, scenario=REAL_RIG, substeps=10)
+    assert err_rounded > 100 * err
 
 
 def test_same_spaces_and_info_as_the_sim_env(rig):
@@ -101,13 +111,8 @@ def test_real_time_emulator_agrees_with_the_sim_env_within_its_timing(kind):
     # old; on top come the loop's own timing slips (period error, command latency) measured in
     # this run. The state offset is then ~ (2 ms + 2 x slip) x max|V| (2x: a slip shifts both
     # the command and the observation), plus 5e-5 m for its effect on the dynamics.
-    url, emu, link, thread = serve(kind, watchdog_s=0.5)
-    try:
+    with serving(kind, watchdog_s=0.5) as (url, _emu):
         err, vmax, slip = compare_with_sim(url)
-    finally:
-        emu.stop()
-        thread.join(timeout=2.0)
-        link.close()
     assert err < (2e-3 + 2 * slip) * vmax + 5e-5, (err, vmax, slip)
 
 
@@ -143,13 +148,9 @@ def test_stale_telemetry_stops_the_episode_and_vents(rig):
 
 
 def test_corrupt_late_and_dropped_frames_are_counted_and_survived():
-    link = UDPServer("127.0.0.1", 0)
-    emu = Emulator(link, "nominal", faults=LinkFaults(corrupt_prob=0.2, late_prob=0.1,
-                                                      drop_prob=0.1, late_s=0.02), seed=3)
-    thread = emu.start_thread()
-    try:
-        with HardwareLegEnv(f"udp://127.0.0.1:{link.address[1]}", task=TASK,
-                            settle_s=0.1) as hw:
+    faults = LinkFaults(corrupt_prob=0.2, late_prob=0.1, drop_prob=0.1, late_s=0.02)
+    with serving("udp", faults=faults, seed=3) as (url, emu):
+        with HardwareLegEnv(url, task=TASK, settle_s=0.1) as hw:
             hw.reset(seed=0)
             for _ in range(100):
                 obs, _r, term, trunc, info = hw.step(np.zeros(2))
@@ -158,10 +159,6 @@ def test_corrupt_late_and_dropped_frames_are_counted_and_survived():
                     break
             assert trunc and not term
             assert info["corrupt_frames"] > 0 and emu.stats.late > 0 and emu.stats.dropped > 0
-    finally:
-        emu.stop()
-        thread.join(timeout=2.0)
-        link.close()
 
 
 def test_close_and_exceptions_vent(rig, monkeypatch):
@@ -213,5 +210,20 @@ def test_killed_rollout_leaves_a_readable_log(tmp_path):
     proc.wait()
     records = read_log(log)
     steps = [r for r in records if "t_s" in r]
-    assert records[0]["event"] == "preflight" and len(steps) > 20
+    assert records[0]["event"] == "session" and records[1]["event"] == "preflight"
+    assert len(steps) > 20 and records.skipped <= 1  # at most the line the kill tore
     assert all({"x_m", "x_ref_m", "pressure_bar", "t_s"} <= set(r) for r in steps)
+    # a second session appended to the same log after the kill stays visible, whole: the torn
+    # line is skipped, not the rest of the file
+    with log.open("a") as f:
+        f.write('\n{"episode": 0, "rew')  # make sure there is a torn last line
+    done = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "rollout", "--policy", "ff",
+                           "--dry-run", "--episode-s", "0.5", "--log", str(log)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    again = read_log(log)
+    sessions = [i for i, r in enumerate(again) if r.get("event") == "session"]
+    assert len(sessions) == 2 and again.skipped == records.skipped + 1
+    assert again[:len(records)] == records  # nothing of the killed session lost
+    second = [r for r in again[sessions[1]:] if "t_s" in r]
+    assert len(second) == 50 and second[-1]["t_s"] == pytest.approx(0.5)

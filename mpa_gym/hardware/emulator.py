@@ -1,7 +1,9 @@
 """A device emulator that plays the rig: `mpa-gym emulate --serial | --udp`.
 
-It runs the plant (the scenario's true plant, compiled RK4 in ≤ 1 ms steps) in real time, applies
-each pressure command as it arrives (through the regulator's first-order lag), streams telemetry
+It runs the plant (the scenario's true plant, compiled RK4 in ≤ 1 ms steps, with its braid and
+slider friction) in real time, applies each pressure command when it arrives plus the
+regulator's dead time (to the microsecond, not rounded to a step), through the regulator's slew
+limit and first-order lag, streams telemetry
 every ``telemetry_period_s``, and behaves like firmware: when commands stop for
 ``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last command even when its
 own loop is a few ms late) it vents both MPAs and raises ``FAULT_WATCHDOG_VENT`` until
@@ -14,6 +16,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,6 +26,7 @@ from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.task.config import END_STOPS_M
 
 
 @dataclass(frozen=True)
@@ -67,14 +71,14 @@ class Emulator:
 
     def __init__(self, link: Any, scenario: Any = "nominal", params: Params = DEFAULT_PARAMS,
                  faults: LinkFaults | None = None, telemetry_period_s: float = 0.001,
-                 watchdog_s: float = 0.04, seed: int = 0, lockstep_dt_s: float | None = None
-                 ) -> None:
+                 watchdog_s: float = 0.04, seed: int = 0, lockstep_dt_s: float | None = None,
+                 initial_state: tuple[float, float, float, float] | None = None) -> None:
         check_range("telemetry_period_s", telemetry_period_s, 1e-4, 0.1, unit="s")
         check_range("watchdog_s", watchdog_s, 1e-3, 10.0, unit="s")
         self.link = link
         self.sc = load_scenario(scenario)
         self.consts = fast.pack(self.sc.plant_params(params))
-        self.lag = self.sc.plant.pressure_lag_s
+        self.dead_time_s = self.sc.plant.pressure_dead_time_s
         self.faults = faults or LinkFaults()
         self.period = telemetry_period_s
         self.watchdog_s = watchdog_s
@@ -87,9 +91,15 @@ class Emulator:
         self.lock = threading.Lock()
         x0, _ = self.sc.start_state()
         p0 = self.sc.design(params).pressures(0.0)
-        # the leg rests at the start height with the design's initial pressures
-        self.state = np.array([x0, 0.0, p0[0], p0[1]])
-        self.cmd = p0.copy()
+        # the leg rests at the start height with the design's initial pressures, unless
+        # initial_state (X [m], V [m/s], P'_e, P'_f [Pa], the pressures also commanded) says
+        if initial_state is None:
+            self.state = np.array([x0, 0.0, p0[0], p0[1]])
+        else:
+            self.state = np.array(initial_state, dtype=float)
+        self.cmd = self.state[2:].copy()  # the command the regulator acts on (after dead time)
+        self.t = 0.0  # [s] plant time
+        self._pending: deque[tuple[float, float, float]] = deque()  # (t due, P'_e, P'_f)
         self.vented = False
         self.faults_flags = 0
         self._seq = 0
@@ -100,22 +110,38 @@ class Emulator:
 
     # -- physics ----------------------------------------------------------------------------
     def _advance(self, dt: float) -> None:
-        """Integrate the plant over dt [s] in RK4 steps of at most 1 ms, command held."""
+        """Integrate the plant over dt [s] in RK4 steps of at most 1 ms; a command whose dead
+        time ends inside a step takes over at that instant (the step is split there)."""
         n = max(1, math.ceil(dt / 1e-3 - 1e-9))
         h = dt / n
         X, V, Pe, Pf = self.state
+
+        def hold(X: float, V: float, Pe: float, Pf: float, span: float) -> tuple:
+            """One RK4 step of ``span`` [s] under the command now in force."""
+            ce, cf = self.cmd
+            return fast.plant_step(X, V, Pe, Pf, ce, cf, ce, cf, 0.0, 0.0, span, self.consts, 1)
+
         for _ in range(n):
-            X, V, Pe, Pf = fast.plant_step(X, V, Pe, Pf, self.cmd[0], self.cmd[1], 0.0,
-                                           self.lag, h, self.consts, 1)
+            a, b = self.t, self.t + h
+            while self._pending and self._pending[0][0] <= b:
+                due, ce, cf = self._pending.popleft()
+                if due > a:
+                    X, V, Pe, Pf = hold(X, V, Pe, Pf, due - a)
+                    a = due
+                self.cmd[:] = (ce, cf)
+            if b > a:
+                X, V, Pe, Pf = hold(X, V, Pe, Pf, b - a)
+            self.t = b
         if not (math.isfinite(X) and math.isfinite(V)):
             self.faults_flags |= proto.FAULT_SENSOR
             return
-        lo, hi = 0.6, 0.87  # the leg rests on its end stops outside this range
+        lo, hi = END_STOPS_M  # the leg rests on its end stops outside this range
         if X < lo or X > hi:
             X, V = min(max(X, lo), hi), 0.0
         self.state[:] = (X, V, Pe, Pf)
 
     def _vent(self, reason_flag: int) -> None:
+        self._pending.clear()  # the vent valves open at once, whatever was in flight
         self.cmd[:] = 0.0
         self.vented = True
         self.faults_flags |= reason_flag
@@ -129,7 +155,8 @@ class Emulator:
             if not (math.isfinite(msg.pe_Pa) and math.isfinite(msg.pf_Pa)):
                 self._vent(proto.FAULT_OVERPRESSURE)
                 return
-            self.cmd[:] = (min(max(msg.pe_Pa, 0.0), 10 * BAR), min(max(msg.pf_Pa, 0.0), 10 * BAR))
+            self._pending.append((self.t + self.dead_time_s, min(max(msg.pe_Pa, 0.0), 10 * BAR),
+                                  min(max(msg.pf_Pa, 0.0), 10 * BAR)))
             self.vented = False
             self.faults_flags &= ~(proto.FAULT_WATCHDOG_VENT | proto.FAULT_VENTED)
             if self.lockstep_dt_s is not None:
@@ -173,6 +200,8 @@ class Emulator:
     def run(self, duration_s: float | None = None) -> None:
         """Serve until ``stop()`` (or for ``duration_s``): real-time plant, commands in,
         telemetry out, watchdog."""
+        if duration_s is not None:
+            check_range("duration_s", duration_s, 0.0, 1e7, low_open=True, unit="s")
         t_last = time.monotonic()
         next_tel = t_last
         t_end = math.inf if duration_s is None else t_last + duration_s
@@ -213,3 +242,65 @@ class Emulator:
         th = threading.Thread(target=self.run, name="mpa-gym-emulator", daemon=True)
         th.start()
         return th
+
+
+class EmulatorProcess:
+    """``mpa-gym emulate --udp`` in a child process (benchmarks, tests): the rig on another
+    process, as a real device is, so that its loop and the PC's do not share an interpreter.
+
+    A context manager; :attr:`url` is the device URL. ``scenario`` is a name or YAML path (or a
+    dict, written to a temporary file); ``args`` are further ``emulate`` flags.
+    """
+
+    def __init__(self, scenario: Any = "nominal", args: tuple[str, ...] = (),
+                 start_timeout_s: float = 60.0) -> None:
+        import subprocess
+        import sys
+        import tempfile
+
+        import yaml
+
+        self._tmp = None
+        if isinstance(scenario, dict):
+            self._tmp = tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False)
+            yaml.safe_dump(scenario, self._tmp)
+            self._tmp.close()
+            scenario = self._tmp.name
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--scenario",
+             str(scenario), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        line = ""
+        deadline = time.monotonic() + start_timeout_s
+        while "udp://" not in line and time.monotonic() < deadline:
+            line = self.proc.stderr.readline()
+            if not line and self.proc.poll() is not None:
+                break
+        if "udp://" not in line:
+            self.close()
+            raise RuntimeError(f"the emulator process did not start: {line.strip()!r}")
+        self.url = line.split("at ", 1)[1].split()[0]
+
+    def close(self) -> None:
+        """Stop the child (SIGINT: the emulator's own Ctrl-C path) and wait for it."""
+        import os
+        import signal
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=5.0)
+            except Exception:
+                self.proc.kill()
+                self.proc.wait()
+        for stream in (self.proc.stdout, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+        if self._tmp is not None:
+            os.unlink(self._tmp.name)
+            self._tmp = None
+
+    def __enter__(self) -> EmulatorProcess:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()

@@ -10,7 +10,8 @@ go into ``info``.
 Safety, in the order it acts: the action is clipped to [−1, 1]; the command is slew-limited and
 clipped to [0, p_max]; the episode ends (and the rig is vented) when X leaves its bounds, when
 no fresh telemetry arrived for ``stale_s`` (lost or late link), when a measured pressure exceeds
-p_max + ``overpressure_margin_bar``, or when the device reports a fault. ``close()``, an exception
+p_max + ``overpressure_margin_bar``, or when the device reports a fault; the step that ends it
+carries the reason in ``info["fault"]``. ``close()``, an exception
 inside ``step`` / ``reset`` and Ctrl-C vent both MPAs; so does the interpreter exiting with the
 env open. The device's own watchdog vents when commands stop (the emulator plays it).
 
@@ -33,9 +34,16 @@ from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.transport import Transport, open_transport
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
-from mpa_gym.task.config import TaskConfig, action_space, observation_space
-from mpa_gym.task.kernels import command_from_action, reward_terms, safe_command
+from mpa_gym.task import contract as C
+from mpa_gym.task.config import TaskConfig
+from mpa_gym.task.homing import HomingConfig, HomingController, HomingError
+from mpa_gym.task.kernels import command_from_action, observe, reward_terms, safe_command
 from mpa_gym.task.plan import make_plan
+
+# [Hz] the rig's control rate: the sim's control period by default; what the link and the
+# device's watchdog allow at most
+CONTROL_HZ = 1.0 / TaskConfig.dt_s
+CONTROL_HZ_RANGE = (1.0, 500.0)
 
 
 class HardwareFault(RuntimeError):
@@ -49,24 +57,96 @@ def _vent_at_exit(ref: weakref.ReferenceType) -> None:
 
 
 class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
-    """The MPA leg rig behind the sim envs' interface (module docstring).
+    """
+    ## Description
 
-    Arguments: ``device`` (``"serial:///dev/ttyACM0"``, ``"udp://HOST:PORT"`` or an open
-    ``Transport``), ``scenario``, ``stiffness`` and ``task`` as for the sim envs, ``residual``
-    (the ``MPALegResidual-v0`` action), ``control_hz`` (1…500), ``stale_s`` (telemetry age that
-    stops the episode), ``settle_s`` (how long ``reset`` holds the start pressures),
-    ``overpressure_margin_bar``, ``connect_timeout_s``, ``settle_timeout_s`` (how long
-    ``reset`` may wait beyond ``settle_s`` for the leg to rest within 5 mm of the start).
+    The MPA leg rig (`MPALegHardware-v0`) behind the interface of `MPALeg-v0` and
+    `MPALegResidual-v0`: the same task layer (spaces, reward, safety layer, `info` keys, the
+    step contract of `mpa_gym.task.contract`), with the plant being whatever answers on the link
+    (the device emulator, `mpa-gym emulate`, plays it). Commands and telemetry travel in the
+    framed wire protocol of `mpa_gym.hardware.protocol`. The loop keeps a fixed rate against
+    monotonic-clock deadlines (module docstring).
+
+    ## Action Space
+
+    `Box(-1, 1, (2,), float32)`, extensor first: the pressures (`residual=False`, as
+    `MPALeg-v0`) or a residual on the feedforward (`residual=True`, as `MPALegResidual-v0`),
+    then the safety layer (slew limit, clip to [0, p_max]). Out-of-range values are clipped to
+    [−1, 1]; NaN, ±inf, non-numbers and wrong shapes raise `ValueError` (the rig is not vented).
+
+    ## Observation Space
+
+    `Box(float32, (8,))` (`(9,)` with `residual=True`) from the newest telemetry: X and V from
+    the rig's sensors, the measured pressures, and the plan's reference, phase and k̂:
+
+    <observation table>
+
+    ## Rewards
+
+    As the sim envs; k is Eq. (23) of the *nominal* model at the measured state and pressures
+    (the rig has no stiffness sensor).
+
+    ## Starting State
+
+    `reset` brings the leg from wherever it rests to X̂(0) by closed-loop homing
+    (`mpa_gym.task.homing`: feedforward + a slew-limited PI on position, settings in
+    `HomingConfig`), holds it at rest there and hands over: the first step's slew limit counts
+    from the homing's last command. If no telemetry has arrived yet it vents once first (the one
+    safe command; it also tells a UDP device where to answer). A homing failure vents the rig and
+    raises `HardwareFault` naming what was measured. With `homing=None` it instead holds the
+    design's start pressures open-loop for at least `settle_s` until the leg rests within 5 mm
+    of X̂(0), failing after `settle_timeout_s` more (only a leg that matches the model starts
+    that way; the tests that compare the rig with the sim step for step use it).
+    `reset(options={"homing": ...})` overrides the setting for one episode; the rig's plant
+    cannot be set. `info["homing_s"]` says how long the reset took.
+
+    ## Episode End
+
+    - Termination (the rig is vented, `info["fault"]` says why): X leaves
+      [`x_min_m`, `x_max_m`]; no fresh telemetry for `stale_s`; a measured pressure above
+      p_max + `overpressure_margin_bar`; a device fault flag; a policy step that acts on
+      telemetry older than `stale_s`; no telemetry acknowledging the period's command within
+      `stale_s` of the period's end.
+    - Timing: a step called more than a quarter period late is an overrun (`info["overruns"]`):
+      the device holds the last command meanwhile and the schedule re-anchors at that step (no
+      catch-up burst). Telemetry acknowledging a command that is not in at the period's end is
+      waited for up to `stale_s` (`info["late_telemetry"]`; the device holds the command), then
+      the episode stops.
+    - Truncation: after `episode_s` (default: the scenario's `duration_s`).
+    - `close()`, an exception inside `step` / `reset`, Ctrl-C and the interpreter exiting with
+      the env open vent both MPAs.
+
+    ## Arguments
+
+    - `device`: `"serial:///dev/ttyACM0"`, `"udp://HOST:PORT"` or an open `Transport`.
+    - `scenario`, `stiffness`, `task`: as for the sim envs (the period is `1 / control_hz`,
+      so `task` takes no `dt_s`).
+    - `residual`: the `MPALegResidual-v0` action and observation.
+    - `control_hz` (1…500), `stale_s` (telemetry age that stops the episode), `settle_s`,
+      `settle_timeout_s`, `overpressure_margin_bar`, `connect_timeout_s`.
+
+    Between episodes, pre-flight checks and tools use the link through `telemetry` (the
+    newest frame), `poll(duration_s)`, `hold(pe_bar, pf_bar, duration_s)` and `vent()`.
+
+    `info` on every step: the sim envs' keys and `overruns`, `period_s`, `jitter_s`,
+    `latency_s` (command to acknowledging telemetry), `corrupt_frames`, `late_telemetry`,
+    `device_faults`, and `fault` when the rig stopped.
+
+    ## Version History
+
+    - v0: initial version.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}
 
     def __init__(self, device: str | Transport, scenario: Any = "nominal", stiffness: Any = None,
                  task: dict[str, Any] | None = None, residual: bool = False,
-                 control_hz: float = 100.0, stale_s: float = 0.03, settle_s: float = 0.5,
+                 control_hz: float = CONTROL_HZ, stale_s: float = 0.03, settle_s: float = 0.5,
                  overpressure_margin_bar: float = 0.5, connect_timeout_s: float = 2.0,
-                 settle_timeout_s: float = 10.0, params: Params = DEFAULT_PARAMS) -> None:
-        check_range("control_hz", control_hz, 1.0, 500.0, unit="Hz")
+                 settle_timeout_s: float = 10.0, params: Params = DEFAULT_PARAMS,
+                 homing: HomingConfig | dict[str, Any] | bool | None = True,
+                 spin_s: float = 3e-4) -> None:
+        check_range("control_hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
         check_range("stale_s", stale_s, 1e-3, 1.0, unit="s")
         check_range("settle_s", settle_s, 0.0, 30.0, unit="s")
         check_range("overpressure_margin_bar", overpressure_margin_bar, 0.0, 3.0, unit="bar")
@@ -76,16 +156,26 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self.cfg = TaskConfig.from_kwargs({**task, "dt_s": 1.0 / control_hz})
         self.plan = make_plan(scenario, stiffness, self.cfg, params)
         self.residual = bool(residual)
-        self.action_space = action_space()
-        self.observation_space = observation_space(self.cfg, self.residual)
+        self.action_space = C.action_space()
+        self.observation_space = C.observation_space(self.cfg, self.residual)
+        self._spec = C.obs_spec(self.residual)  # the observation layout (task.contract)
+        self._table = self.plan.table()
+        self._no_noise = np.zeros(len(C.STATE))  # the rig's sensors add their own
         self.nominal = fast.pack(params)
+        self.params = params
+        self.homing = HomingConfig.from_option(homing)
         # compile (or load) the task kernels now: a first call inside step() would take longer
         # than the device's watchdog allows between two commands
         command_from_action(0.0, 0.0, True, 1.0, 1.0)
         safe_command(0.0, 0.0, 1.0, 1.0)
         reward_terms(0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.5, 0.1)
-        fast.force_and_stiffness(0.8, 0.0, 0.0, 0.0, self.nominal)
+        x_rest = params.leg.x_rest
+        fast.force_and_stiffness(x_rest, 0.0, 0.0, 0.0, self.nominal)
+        observe(np.zeros(self._spec.shape[0]), x_rest, 0.0, 0.0, 0.0, self._table[0],
+                self._no_noise, self._spec)
         self.stale_s, self.settle_s = stale_s, settle_s
+        self.spin_s = check_range("spin_s", spin_s, 0.0, 0.5 / control_hz, unit="s",
+                                  note="at most half a period")
         self.settle_timeout_s = check_range("settle_timeout_s", settle_timeout_s, 0.0, 600.0,
                                             unit="s")
         self.p_limit = (self.cfg.p_max_bar + overpressure_margin_bar) * BAR
@@ -99,7 +189,8 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._latency: list[float] = []
         self._closed = False
         self._done = True
-        self.overruns = 0
+        self.overruns = 0  # this episode's (info["overruns"])
+        self.session_overruns = 0  # since the env was made, like late_telemetry and timing
         self.late_telemetry = 0
         self.timing: dict[str, list[float]] = {"period_s": [], "latency_s": []}
         atexit.register(_vent_at_exit, weakref.ref(self))
@@ -115,8 +206,10 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
     def _read(self, until: float) -> None:
         """Read telemetry until the monotonic time ``until`` (at least one poll)."""
         while True:
-            now = time.monotonic()
-            data = self.link.recv(max(0.0, min(until - now, 0.002)))
+            left = until - time.monotonic()
+            # sleep in the select, but poll (spin) through the last spin_s: a sleeping
+            # process is woken whenever the OS (or the VM's host) gets round to it
+            data = self.link.recv(0.0 if left < self.spin_s else min(left - self.spin_s, 0.002))
             t = time.monotonic()
             for msg in self.decoder.feed(data) if data else ():
                 if isinstance(msg, proto.Telemetry):
@@ -128,6 +221,34 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             if t >= until:
                 return
 
+    # -- public link API (pre-flight checks, tools) -------------------------------------------
+    @property
+    def telemetry(self) -> proto.Telemetry | None:
+        """The newest telemetry frame received (None before the first)."""
+        return self._tel
+
+    def poll(self, duration_s: float) -> proto.Telemetry | None:
+        """Read telemetry for ``duration_s`` (at least one poll) without commanding; returns the
+        newest frame. The device's watchdog vents if no command follows within its limit."""
+        self._read(time.monotonic() + duration_s)
+        return self._tel
+
+    def hold(self, pe_bar: float, pf_bar: float, duration_s: float) -> proto.Telemetry | None:
+        """Command (P'_e, P'_f) [bar] once per control period for ``duration_s`` (feeding the
+        device's watchdog), reading telemetry; returns the newest frame. Outside an episode
+        only (``reset`` / ``step`` own the link during one); the pressures must lie in
+        [0, p_max]."""
+        if not self._done:
+            raise RuntimeError("hold() during an episode: the episode's steps command the rig")
+        for name, v in (("pe_bar", pe_bar), ("pf_bar", pf_bar)):
+            check_range(name, v, 0.0, self.cfg.p_max_bar, unit="bar")
+        end = time.monotonic() + duration_s
+        while True:
+            self._send(proto.Command, pe_bar * BAR, pf_bar * BAR)
+            self._read(min(end, time.monotonic() + self.cfg.dt_s))
+            if time.monotonic() >= end:
+                return self._tel
+
     def vent(self) -> None:
         """Vent both MPAs (sent three times: UDP may lose one)."""
         for _ in range(3):
@@ -137,21 +258,25 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                 return
 
     # -- safety -----------------------------------------------------------------------------
-    def _check(self) -> str | None:
-        """The reason to stop, or None."""
+    def _check(self, stale_s: float | None = None, watchdog: bool = True) -> str | None:
+        """The reason to stop, or None (telemetry older than ``stale_s``, default the env's;
+        ``watchdog``: a watchdog vent of the device stops too)."""
         now = time.monotonic()
-        if self._tel is None or now - self._tel_time > self.stale_s:
+        stale_s = self.stale_s if stale_s is None else stale_s
+        if self._tel is None or now - self._tel_time > stale_s:
             age = now - self._tel_time
             return (f"stale telemetry: newest is {age * 1e3:.1f} ms old (limit "
-                    f"{self.stale_s * 1e3:.0f} ms); check the link and the device")
+                    f"{stale_s * 1e3:.0f} ms); check the link and the device")
         t = self._tel
         if not all(math.isfinite(v) for v in (t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa)):
             return f"sensor fault: non-finite telemetry {t}"
         if max(t.pe_Pa, t.pf_Pa) > self.p_limit:
             return (f"over-pressure: measured ({t.pe_Pa / BAR:.2f}, {t.pf_Pa / BAR:.2f}) bar "
                     f"> limit {self.p_limit / BAR:.2f} bar")
-        if t.faults & (proto.FAULT_WATCHDOG_VENT | proto.FAULT_OVERPRESSURE
-                       | proto.FAULT_SENSOR):
+        stops = proto.FAULT_OVERPRESSURE | proto.FAULT_SENSOR
+        if watchdog:
+            stops |= proto.FAULT_WATCHDOG_VENT
+        if t.faults & stops:
             return f"device fault flags 0x{t.faults:02x}"
         return None
 
@@ -159,64 +284,114 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
-        if options:
+        options = dict(options or {})
+        if set(options) - {"homing"}:
             raise ValueError(f"reset options {sorted(options)}: the rig's plant cannot be set; "
-                             "the hardware env takes no options")
+                             "the hardware env takes only 'homing'")
+        homing = (HomingConfig.from_option(options["homing"]) if "homing" in options
+                  else self.homing)
+        t0 = time.monotonic()
         try:
-            p0 = self.plan.p0
-            x_start = float(self.plan.x_ref[0])
-            t0 = time.monotonic()
-            while True:  # hold the start pressures (feeding the device's watchdog) until the
-                # leg rests near the start height, at least settle_s
-                self._send(proto.Command, float(p0[0]), float(p0[1]))
-                self._read(time.monotonic() + self.cfg.dt_s)
-                waited = time.monotonic() - t0
-                tel = self._tel
-                at_rest = tel is not None and abs(tel.x_m - x_start) < 0.005 and \
-                    abs(tel.v_mps) < 0.02
-                if waited >= self.settle_s and at_rest:
-                    break
-                if waited > self.settle_s + self.settle_timeout_s:
-                    where = "no telemetry" if tel is None else (
-                        f"X = {tel.x_m:.4f} m, V = {tel.v_mps:.3f} m/s")
-                    raise HardwareFault(f"reset: the leg did not come to rest at X = "
-                                        f"{x_start:.3f} m within {waited:.1f} s ({where}); "
-                                        "check the link, the supply pressure and the leg")
+            self._wake()
+            if homing is None:
+                p_hold = self._settle_open_loop()
+            else:
+                p_hold = self._home(homing)
             reason = self._check()
             if reason is not None:
                 raise HardwareFault(reason)
         except BaseException:
             self.vent()
             raise
-        self._prev = p0.astype(float).copy()
+        self._prev = p_hold.astype(float).copy()
         self._j = 0
         self._deadline = time.monotonic()  # the first period starts now
+        self._obs_time = self._tel_time  # arrival of the telemetry the observation shows
         self._last_start = math.nan
         self.overruns = 0
         self._done = False
         obs = self._observe()
         t = self._tel
         k0 = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)[1]
-        return obs, self._info(np.zeros(4), 0, p0, k0)
+        info = self._info((0.0, 0.0, 0.0, 0.0), 0, p_hold, k0)  # no reward before a step
+        info["homing_s"] = time.monotonic() - t0
+        return obs, info
+
+    def _wake(self) -> None:
+        """Make sure telemetry flows: wait briefly, then vent once (safe, and a UDP device
+        learns where to answer) and wait up to ``stale_s``-bounded polls for a frame."""
+        if self._tel is not None and time.monotonic() - self._tel_time < self.stale_s:
+            return
+        self._read(time.monotonic() + 0.05)
+        if self._tel is None or time.monotonic() - self._tel_time > self.stale_s:
+            self.vent()
+            end = time.monotonic() + 1.0
+            while time.monotonic() < end and (self._tel is None or
+                                             time.monotonic() - self._tel_time > self.stale_s):
+                self._read(time.monotonic() + 0.01)
+        if self._tel is None:
+            raise HardwareFault("reset: no telemetry from the device within 1 s of venting; "
+                                "check the link and that the device is on")
+
+    def _home(self, cfg: HomingConfig) -> np.ndarray:
+        """Closed-loop homing (``mpa_gym.task.homing``); returns the holding command [Pa]."""
+        ctrl = HomingController(cfg, float(self.plan.x_ref[0]), self.plan.p0, self.cfg.dt_s,
+                                self.cfg.p_max_bar * BAR, self.params)
+        t = self._tel
+        ctrl.start(t.x_m, np.array([t.pe_Pa, t.pf_Pa]))
+        deadline = time.monotonic()
+        while True:
+            t = self._tel
+            try:
+                cmd = ctrl.command(t.x_m, t.v_mps)
+            except HomingError as e:
+                raise HardwareFault(f"reset: {e}") from None
+            self._send(proto.Command, float(cmd[0]), float(cmd[1]))
+            deadline = max(deadline + self.cfg.dt_s, time.monotonic())
+            self._read(deadline)
+            # a watchdog vent (the PC stalled for 40 ms) does not stop homing: it drops the leg,
+            # which homing then brings back, as from any rest; the timeout still bounds it
+            reason = self._check(max(self.stale_s, cfg.stale_s), watchdog=False)
+            if reason is not None:
+                raise HardwareFault(f"reset (homing): {reason}")
+            if ctrl.done and ctrl.arrived(self._tel.x_m, self._tel.v_mps):
+                break  # the frame the episode starts from is within the tolerances too
+        return ctrl.cmd.copy()
+
+    def _settle_open_loop(self) -> np.ndarray:
+        """Hold the design's start pressures until the leg rests within 5 mm of the start."""
+        p0 = self.plan.p0
+        x_start = float(self.plan.x_ref[0])
+        t0 = time.monotonic()
+        while True:  # hold the start pressures (feeding the device's watchdog) until the
+            # leg rests near the start height, at least settle_s
+            self._send(proto.Command, float(p0[0]), float(p0[1]))
+            self._read(time.monotonic() + self.cfg.dt_s)
+            waited = time.monotonic() - t0
+            tel = self._tel
+            at_rest = tel is not None and abs(tel.x_m - x_start) < 0.005 and \
+                abs(tel.v_mps) < 0.02
+            if waited >= self.settle_s and at_rest:
+                return p0
+            if waited > self.settle_s + self.settle_timeout_s:
+                where = "no telemetry" if tel is None else (
+                    f"X = {tel.x_m:.4f} m, V = {tel.v_mps:.3f} m/s")
+                raise HardwareFault(f"reset: the leg did not come to rest at X = "
+                                    f"{x_start:.3f} m within {waited:.1f} s ({where}); "
+                                    "check the link, the supply pressure and the leg")
 
     def _observe(self) -> np.ndarray:
-        t, p, j = self._tel, self.plan, self._j
-        obs = [t.x_m, t.v_mps, p.x_ref[j], p.v_ref[j], p.sin_phase[j], p.cos_phase[j],
-               t.pe_Pa / BAR, t.pf_Pa / BAR]
-        if self.residual:
-            obs.append(p.k_ref[j] / 1000.0)
-        return np.array(obs, dtype=np.float32)
+        """The newest telemetry and the plan's row, in the layout of ``task.contract``."""
+        t = self._tel
+        obs = np.empty(self._spec.shape[0])
+        observe(obs, t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self._table[self._j], self._no_noise,
+                self._spec)
+        return obs.astype(np.float32)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() on a finished (or never started) episode: call reset()")
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (2,):
-            raise ValueError(f"action has shape {a.shape}; expected (2,) (extensor, flexor) in "
-                             "[-1, 1]")
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"action={a.tolist()} must be finite; allowed range [-1, 1]")
-        a = np.clip(a, -1.0, 1.0)
+        a = C.check_action(action)
         try:
             return self._step(a)
         except BaseException:
@@ -228,38 +403,64 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         c, p, j = self.cfg, self.plan, self._j
         start = time.monotonic()
         # the period started at self._deadline; a caller that needs more than a quarter period
-        # to answer sends its command late: an overrun
-        if start - self._deadline > 0.25 * c.dt_s:
+        # to answer sends its command late: an overrun. The device holds the last command
+        # meanwhile, and the schedule re-anchors at this step (no burst of short periods to
+        # catch up). An action computed from telemetry older than stale_s stops the episode
+        # instead (the device's watchdog would vent soon after anyway).
+        late = start - self._deadline
+        if late > 0.25 * c.dt_s:
             self.overruns += 1
+            self.session_overruns += 1
+        slow = None
+        age = start - self._obs_time
+        if age > self.stale_s:
+            slow = (f"slow policy step: it acted on telemetry {age * 1e3:.1f} ms old (limit "
+                    f"stale_s = {self.stale_s * 1e3:.0f} ms); the device held the last command "
+                    "meanwhile")
         period = start - self._last_start
         self._last_start = start
-        cmd, flags = np.zeros(2), 0
-        for m in range(2):
-            raw = command_from_action(a[m], p.ff[j, m], self.residual,
-                                      c.residual_scale_bar * BAR, c.p_max_bar * BAR)
-            cmd[m], f = safe_command(raw, self._prev[m], c.p_max_bar * BAR, c.max_delta_Pa)
-            flags |= f
-        self._prev = cmd
-        self._send(proto.Command, float(cmd[0]), float(cmd[1]))
-        sent = self._seq
-        self._deadline = max(self._deadline + c.dt_s, start)  # this period's end
-        self._read(self._deadline)
-        # the observation must show this period's command applied; if the acknowledging
-        # telemetry is late, wait for it up to stale_s (a late period, counted)
-        give_up = self._deadline + self.stale_s
-        if self._tel is not None and self._tel.ack_seq != sent:
-            self.late_telemetry += 1
-            while (self._tel is None or self._tel.ack_seq != sent) and \
-                    time.monotonic() < give_up:
-                self._read(time.monotonic() + 0.001)
+        cmd, flags, late_ack = self._prev, 0, None
+        if slow is None:
+            cmd = np.zeros(2)
+            for m in range(2):
+                raw = command_from_action(a[m], p.ff[j, m], self.residual,
+                                          c.residual_scale_bar * BAR, c.p_max_bar * BAR)
+                cmd[m], f = safe_command(raw, self._prev[m], c.p_max_bar * BAR, c.max_delta_Pa)
+                flags |= f
+            self._prev = cmd
+            self._send(proto.Command, float(cmd[0]), float(cmd[1]))
+            sent = self._seq
+            # this period's end: one period on, or, after an overrun, one period after this
+            # (late) start, so the command still gets a whole period before it is observed
+            self._deadline = (start if late > 0.25 * c.dt_s else self._deadline) + c.dt_s
+            self._read(self._deadline)
+            # the observation must show this period's command applied; if the acknowledging
+            # telemetry is late, hold (the device keeps the command) and wait for it up to
+            # stale_s (a late period, counted); if it does not come, stop
+            give_up = self._deadline + self.stale_s
+            if self._tel is not None and self._tel.ack_seq != sent:
+                self.late_telemetry += 1
+                while (self._tel is None or self._tel.ack_seq != sent) and \
+                        time.monotonic() < give_up:
+                    self._read(time.monotonic() + 0.001)
+            if self._tel is not None and self._tel.ack_seq != sent:
+                late_ack = (f"late telemetry: no frame acknowledged this period's command within "
+                        f"stale_s = {self.stale_s * 1e3:.0f} ms of the period's end (the newest "
+                        f"acknowledges command #{self._tel.ack_seq}, sent #{sent}); check the "
+                        "link and the device")
+        else:
+            self._read(start)  # the newest telemetry, for the record
         self._j = j = j + 1
-        reason = self._check()
+        reason = slow or self._check() or late_ack  # silence reads as stale, not late
+        self._obs_time = self._tel_time
         t = self._tel
         _, k = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)
         r = reward_terms(t.x_m - p.x_ref[j], k, p.k_ref[j], a[0], a[1], c.sigma_x_m, c.sigma_k,
                          c.stiffness_weight(self.residual), c.w_effort)
-        out_of_bounds = not (c.x_min_m <= t.x_m <= c.x_max_m)
-        terminated = out_of_bounds or reason is not None
+        if reason is None and not (c.x_min_m <= t.x_m <= c.x_max_m):
+            reason = (f"position bound: X = {t.x_m:.4f} m left [{c.x_min_m:g}, "
+                      f"{c.x_max_m:g}] m (unstable or too aggressive controller?)")
+        terminated = reason is not None
         truncated = j >= p.n_steps and not terminated
         if math.isfinite(period):
             self.timing["period_s"].append(period)
@@ -276,13 +477,15 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _info(self, r: np.ndarray, flags: int, cmd: np.ndarray, k: float,
               period: float = math.nan, latency: float = math.nan) -> dict[str, Any]:
-        t, p, j = self._tel, self.plan, self._j
+        t, j = self._tel, self._j
+        out = np.zeros(len(C.OUT))
+        out[C.O_CMDE:C.O_CMDF + 1] = cmd
+        out[C.O_K] = k
+        out[[C.O_R, C.O_RX, C.O_RK, C.O_RU]] = r  # reward_terms' order: total, its 3 terms
+        out[C.O_FLAGS] = flags
+        state = np.array([getattr(t, name) for name in C.STATE])  # telemetry fields by name
         return {
-            "x_m": float(t.x_m), "x_ref_m": float(p.x_ref[j]), "k_N_per_m": float(k),
-            "k_ref_N_per_m": float(p.k_ref[j]), "pressure_cmd_bar": np.asarray(cmd) / BAR,
-            "pressure_bar": np.array([t.pe_Pa, t.pf_Pa]) / BAR,
-            "reward_position": float(r[1]), "reward_stiffness": float(r[2]),
-            "reward_effort": float(r[3]), "safety": int(flags), "t_s": j * self.cfg.dt_s,
+            **C.step_info(out, state, self._table[j], j * self.cfg.dt_s),
             "overruns": self.overruns, "period_s": period,
             "jitter_s": period - self.cfg.dt_s if math.isfinite(period) else math.nan,
             "latency_s": latency, "corrupt_frames": self.decoder.corrupt,
@@ -305,3 +508,8 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __exit__(self, *exc: Any) -> None:
         self.close()
+
+
+# The observation table of the docstring is the step contract's (task.contract).
+HardwareLegEnv.__doc__ = (HardwareLegEnv.__doc__ or "").replace(
+    "<observation table>", C.obs_table(True).replace("\n", "\n    "))

@@ -1,0 +1,90 @@
+"""Files that survive a kill and errors that name them: atomic writes and checked reads.
+
+An artefact is written to a temporary file beside its destination, flushed to disk and renamed
+over it (``os.replace``, atomic on POSIX and Windows), so a reader (or a resumed run) sees the old
+complete file or the new complete one, never a torn one. A file that cannot be read is reported by
+path and by what is wrong with it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+import yaml
+
+
+class DamagedFileError(ValueError):
+    """A file exists but cannot be read (truncated, corrupt, not what its name says)."""
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike[str], mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a temporary file beside ``path``; on a clean exit flush, fsync and rename it to
+    ``path``; on an exception remove it (``path`` keeps its old content)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    with atomic_open(path, "w") as f:
+        f.write(text)
+    return Path(path)
+
+
+def atomic_save(path: str | os.PathLike[str], save: Callable[[Any], Any]) -> Path:
+    """``save(file)`` writes into an open binary file that becomes ``path`` atomically (for
+    writers that take a file object: ``model.save``, ``np.savez``, ``pickle.dump``)."""
+    with atomic_open(path, "wb") as f:
+        save(f)
+    return Path(path)
+
+
+def remove_stale_temporaries(folder: str | os.PathLike[str]) -> int:
+    """Delete the temporary files a killed writer left in ``folder``; returns how many."""
+    n = 0
+    for p in Path(folder).glob(".*.tmp"):
+        with contextlib.suppress(OSError):
+            p.unlink()
+            n += 1
+    return n
+
+
+def read_yaml(path: str | os.PathLike[str], what: str, error: type[ValueError] = ValueError
+              ) -> Any:
+    """The YAML document in ``path``; ``error`` names the file and the problem (missing, a
+    folder, not UTF-8 text, not YAML)."""
+    p = Path(path)
+    if p.is_dir():
+        raise error(f"{what} {str(p)!r} is a folder, not a YAML file")
+    if not p.is_file():
+        raise error(f"{what} {str(p)!r} does not exist")
+    try:
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise error(f"{what} {str(p)!r} is not UTF-8 text (byte 0x{e.object[e.start]:02x} at "
+                    f"offset {e.start}): is it a YAML file?") from None
+    except OSError as e:
+        raise error(f"{what} {str(p)!r} cannot be read: {e.strerror}") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise error(f"{what} {str(p)!r} is not valid YAML: {problem}{where}") from None

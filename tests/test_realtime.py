@@ -1,0 +1,109 @@
+"""What the rig's loop does when it cannot hold its rate: a slow policy step, late telemetry;
+and the real-time context."""
+
+from __future__ import annotations
+
+import gc
+import os
+import time
+
+import numpy as np
+import pytest
+
+from mpa_gym.hardware import protocol as proto
+from mpa_gym.hardware.emulator import Emulator, LinkFaults
+from mpa_gym.hardware.env import HardwareLegEnv
+from mpa_gym.hardware.realtime import realtime
+from mpa_gym.hardware.transport import UDPServer
+
+TASK = {"episode_s": 2.0}
+# stale_s relaxed to 0.2 s, as in test_hardware.py and test_rollout_safety.py: every wait below is
+# either well inside it (≤ stale_s / 4) or well beyond it (2 × stale_s), so that a scheduling
+# hiccup of the shared 2-core test machine (tens of ms) cannot move a step across it
+STALE_S = 0.2
+
+
+@pytest.fixture
+def rig():
+    """(device URL, emulator) on UDP loopback, the emulator's watchdog relaxed to 2 s (beyond
+    every wait of these tests) so that what the tests see is the env's own decision, not the
+    device venting by itself."""
+    link = UDPServer("127.0.0.1", 0)
+    emu = Emulator(link, "nominal", watchdog_s=2.0)
+    thread = emu.start_thread()
+    yield f"udp://127.0.0.1:{link.address[1]}", emu
+    emu.stop()
+    thread.join(timeout=2.0)
+    link.close()
+
+
+def wait_for(condition, timeout_s=5.0):
+    """Until ``condition()`` (the emulator's thread handles what was sent), or fail."""
+    end = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < end, "not within the timeout"
+        time.sleep(0.005)
+
+
+def test_slow_policy_step_holds_then_stops(rig):
+    url, emu = rig
+    with HardwareLegEnv(url, task=TASK, stale_s=STALE_S) as hw:
+        hw.reset(seed=0)
+        hw.step(np.zeros(2))
+        held, overruns = emu.cmd.copy(), hw.overruns
+        time.sleep(STALE_S / 4)  # the policy takes 50 ms: five periods late, inside stale_s
+        np.testing.assert_array_equal(emu.cmd, held)  # the device held the last command
+        *_, term, _, info = hw.step(np.zeros(2))
+        assert not term and "fault" not in info
+        assert info["overruns"] >= overruns + 1  # counted, and the step went on
+        commands = emu.stats.commands
+        time.sleep(2 * STALE_S)  # the observation it acts on is older than stale_s
+        *_, term, _, info = hw.step(np.zeros(2))
+        assert term and "slow policy step" in info["fault"], info.get("fault")
+        wait_for(lambda: emu.vented)  # the rig was vented ...
+        assert emu.stats.watchdog_vents == 0  # ... by the env, not by the device's watchdog
+        # the vent went out after the step; the stale action (before it) was never sent
+        assert emu.stats.commands == commands
+
+
+def test_late_telemetry_is_waited_for_then_stops_when_stale(rig):
+    url, emu = rig
+    with HardwareLegEnv(url, task=TASK, stale_s=STALE_S) as hw:
+        hw.reset(seed=0)
+        # every frame 50 ms late: five periods after the step's deadline, inside stale_s
+        emu.faults = LinkFaults(latency_s=STALE_S / 4)
+        late0 = hw.late_telemetry
+        for _ in range(5):
+            commands = emu.stats.commands
+            *_, term, _, info = hw.step(np.zeros(2))
+            assert not term and "fault" not in info
+            assert emu.stats.commands == commands + 1  # one command per period, held
+            assert hw.telemetry.ack_seq == hw._seq  # the observation shows this period's command
+        # each step waited for its acknowledgement (one may escape the count: a stall of 40 ms
+        # between its command and its deadline lets the late frame in on time)
+        assert info["late_telemetry"] >= late0 + 4
+        # the device keeps streaming telemetry but stops taking commands: frames arrive, none
+        # acknowledges the period's command
+        emu.faults = LinkFaults()
+        handle = emu._handle
+        emu._handle = lambda msg, now: None if isinstance(msg, proto.Command) else handle(msg, now)
+        *_, term, _, info = hw.step(np.zeros(2))
+        assert term and "late telemetry: no frame acknowledged" in info["fault"], info
+        assert emu.stats.watchdog_vents == 0  # the env stopped, not the device's watchdog
+        emu._handle = handle
+
+
+def test_realtime_context_restores_what_it_changed():
+    before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
+    assert gc.isenabled()
+    with realtime(10) as rt:
+        assert not gc.isenabled()
+        assert rt["sched_fifo"] or rt["notes"]  # granted, or it says why not
+        if rt["sched_fifo"]:
+            assert os.sched_getscheduler(0) == os.SCHED_FIFO
+    assert gc.isenabled()
+    if before is not None:
+        assert os.sched_getscheduler(0) == before
+    with pytest.raises(ValueError, match=r"priority=0 is outside the allowed range \[1, 99\]"):
+        with realtime(0):
+            pass
