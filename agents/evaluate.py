@@ -11,6 +11,9 @@ window `mpa-gym simulate` uses) unless said otherwise:
 - ``recovery_s``: after the first impulse ends, the time until |X − X̂| stays below 1 mm
   (``None`` without an impulse, ``inf`` if it never does);
 - ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds.
+
+With ``robustness=True`` the report also holds the robustness sweep of ``agents.robustness``
+(grids of real-rig effects, easy / medium / hard levels) with its heatmaps.
 """
 
 from __future__ import annotations
@@ -25,9 +28,12 @@ import gymnasium as gym
 import numpy as np
 
 import mpa_gym  # noqa: F401
-from agents.baselines import Policy
+from agents.baselines import BASELINES, Policy, stack
+from agents.config import EVAL_SEED
 from agents.policies import load_policy
 from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.files import atomic_write_text
+from mpa_gym.task.contract import SAFETY_CLIPPED
 
 PAPER_SCENARIOS = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch",
                    "load_1kg", "kmax", "kmin"]
@@ -65,7 +71,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any]
         obs, r, terminated, truncated, info = env.step(action)
         rows.append((info["t_s"], info["x_m"], info["x_ref_m"], info["k_N_per_m"],
                      info["k_ref_N_per_m"], info["pressure_bar"].copy(),
-                     info["pressure_cmd_bar"].copy(), bool(info["safety"] & 1)))
+                     info["pressure_cmd_bar"].copy(), bool(info["safety"] & SAFETY_CLIPPED)))
         rewards.append(r)
         if terminated or truncated:
             break
@@ -73,6 +79,91 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any]
     return Trace(np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]),
                  np.array(cols[4]), np.array(cols[5]), np.array(cols[6]), np.array(cols[7]),
                  np.array(rewards), bool(terminated))
+
+
+@dataclass
+class Job:
+    """One evaluation episode: ``policy`` on ``scenario`` in env ``env_id`` with ``task``."""
+
+    scenario: Any  # a loaded Scenario
+    policy: Policy
+    env_id: str
+    task: dict[str, Any]
+
+
+def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
+    """Every job's episode at once, each exactly as :func:`run_episode` runs it alone.
+
+    Jobs of one (scenario, env, task) share a native vector env, one row each, every row reset
+    with the same episode seed (so row i is the single env reset with ``seed``); all the vector
+    envs step together, and each policy is called once per step with the observations of all
+    its rows (a learned policy evaluated on every scenario of a report is one batched forward
+    pass per step). A row is recorded until its episode ends; its autoreset is ignored.
+    """
+    groups: dict[tuple[int, str, str], list[int]] = {}
+    for i, j in enumerate(jobs):
+        key = (id(j.scenario), j.env_id, json.dumps(j.task, sort_keys=True, default=str))
+        groups.setdefault(key, []).append(i)
+    envs, rows_of = [], []  # per group: vector env, job indices
+    obs_of: list[np.ndarray] = []
+    for (_, env_id, _), idx in groups.items():
+        j0 = jobs[idx[0]]
+        venv = gym.make_vec(env_id, num_envs=len(idx), vectorization_mode="vector_entry_point",
+                            scenario=j0.scenario, task=j0.task)
+        obs, _ = venv.reset(seed=[seed] * len(idx))
+        envs.append(venv)
+        rows_of.append(idx)
+        obs_of.append(obs)
+    # where each job sits: (group, row); each policy object's jobs, in a fixed order
+    where = {i: (g, r) for g, idx in enumerate(rows_of) for r, i in enumerate(idx)}
+    by_policy: dict[int, list[int]] = {}
+    for i, j in enumerate(jobs):
+        by_policy.setdefault(id(j.policy), []).append(i)
+    states: dict[int, Any] = dict.fromkeys(by_policy)
+    n = len(jobs)
+    act_dim = envs[0].single_action_space.shape[0]
+    actions = [np.zeros((len(idx), act_dim), dtype=np.float32) for idx in rows_of]
+    live = np.ones(n, dtype=bool)
+    cols: list[list[Any]] = [[] for _ in range(n)]
+    rewards: list[list[float]] = [[] for _ in range(n)]
+    terminated = np.zeros(n, dtype=bool)
+    first = True
+    while live.any():
+        for pid, idx in by_policy.items():
+            batch = np.stack([obs_of[where[i][0]][where[i][1]] for i in idx])
+            start = np.full(len(idx), first)
+            a, states[pid] = jobs[idx[0]].policy.predict(batch, states[pid], start,
+                                                         deterministic=True)
+            for k, i in enumerate(idx):
+                g, r = where[i]
+                actions[g][r] = a[k]
+        first = False
+        for g, venv in enumerate(envs):
+            obs, rew, term, trunc, info = venv.step(actions[g])
+            obs_of[g] = obs
+            done = term | trunc
+            last = info.get("final_info", info)
+            for r, i in enumerate(rows_of[g]):
+                if not live[i]:
+                    continue
+                src = last if done[r] else info
+                cols[i].append((src["t_s"][r], src["x_m"][r], src["x_ref_m"][r],
+                                src["k_N_per_m"][r], src["k_ref_N_per_m"][r],
+                                src["pressure_bar"][r].copy(), src["pressure_cmd_bar"][r].copy(),
+                                bool(src["safety"][r] & SAFETY_CLIPPED)))
+                rewards[i].append(rew[r])
+                if done[r]:
+                    live[i] = False
+                    terminated[i] = bool(term[r])
+    for venv in envs:
+        venv.close()
+    out = []
+    for i in range(n):
+        c = list(zip(*cols[i], strict=True))
+        out.append(Trace(np.array(c[0]), np.array(c[1]), np.array(c[2]), np.array(c[3]),
+                         np.array(c[4]), np.array(c[5]), np.array(c[6]), np.array(c[7]),
+                         np.array(rewards[i]), bool(terminated[i])))
+    return out
 
 
 def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
@@ -100,33 +191,86 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
     }
 
 
-def make_env(env_id: str, scenario: Any, run_cfg: Any = None) -> gym.Env:
-    """The env a controller is evaluated in: the scenario, with a learned policy's own task
-    settings (control period, limits) if it has a run config."""
+def eval_task(run_cfg: Any = None) -> dict[str, Any]:
+    """The task settings a controller is evaluated with: a learned policy's own (control
+    period, limits, residual scale) if it has a run config; the scenario's duration rules."""
     task = (run_cfg.env_kwargs.get("task") if run_cfg is not None else None) or {}
-    task = {k: v for k, v in task.items() if k != "episode_s"}  # the scenario's duration rules
-    return gym.make(env_id, scenario=scenario, task=task)
+    return {k: v for k, v in task.items() if k != "episode_s"}
 
 
-def evaluate(policies: list[str], scenarios: list[Any], seed: int = 1_000_000
-             ) -> dict[str, Any]:
-    """Metrics and traces of each controller on each scenario (episode seed ``seed``)."""
+def make_env(env_id: str, scenario: Any, run_cfg: Any = None) -> gym.Env:
+    """The single env a controller is evaluated in (:func:`eval_task`)."""
+    return gym.make(env_id, scenario=scenario, task=eval_task(run_cfg))
+
+
+def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
+             robustness: bool = False, batched: bool = True) -> dict[str, Any]:
+    """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
+    the robustness sweep if ``robustness``.
+
+    All episodes run as one batch (:func:`run_batch`); ``batched=False`` runs them one after
+    another (:func:`run_episode`), with the same numbers."""
     results: dict[str, dict[str, Any]] = {}
     traces: dict[str, dict[str, Trace]] = {}
-    for sc_spec in scenarios:
-        sc = load_scenario(sc_spec)
+    loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
+    learned = {spec: load_policy(spec) for spec in policies if spec not in BASELINES}
+    # a baseline is built for its scenario's plan; batched, one stack of them per baseline
+    own = {spec: [load_policy(spec, {"scenario": sc})[0] for sc in loaded]
+           for spec in policies if spec in BASELINES}
+    stacked = {spec: stack(ps) for spec, ps in own.items()} if batched else {}
+    jobs, keys = [], []
+    for k, sc in enumerate(loaded):
+        for spec in policies:
+            if spec in learned:
+                policy, env_id, run_cfg = learned[spec]
+            else:
+                policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
+                                           "MPALegResidual-v0", None)
+            jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
+            keys.append((sc, _label(spec)))
+    if batched:
+        trs = run_batch(jobs, seed)
+    else:
+        trs = []
+        for j in jobs:
+            env = gym.make(j.env_id, scenario=j.scenario, task=j.task)
+            trs.append(run_episode(env, j.policy, seed))
+            env.close()
+    for (sc, label), tr in zip(keys, trs, strict=True):
         impulses = [d for d in sc.disturbances if d.type == "impulse"]
         end = impulses[0].t_s + impulses[0].duration_s if impulses else None
-        results[sc.name], traces[sc.name] = {}, {}
-        for spec in policies:
-            policy, env_id, run_cfg = load_policy(spec, {"scenario": sc})
-            env = make_env(env_id, sc, run_cfg)
-            tr = run_episode(env, policy, seed)
-            env.close()
-            results[sc.name][_label(spec)] = metrics(tr, sc.reference.period, end)
-            traces[sc.name][_label(spec)] = tr
-    return {"results": results, "traces": traces, "seed": seed,
-            "learning": learning_speed(policies, results)}
+        results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
+        traces.setdefault(sc.name, {})[label] = tr
+    report = {"results": results, "traces": traces, "seed": seed,
+              "learning": learning_speed(policies, results),
+              "controllers": {_label(p): tuned_on(p) for p in policies},
+              "groups": seed_groups(policies, results)}
+    if robustness:
+        from agents.robustness import robustness as sweep
+
+        report["robustness"] = sweep(policies, seed=seed)
+    return report
+
+
+def seed_groups(policies: list[str], results: dict[str, Any]) -> dict[str, Any]:
+    """Run folders of one config (several seeds) as groups: per scenario the IQM of each
+    metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate learning
+    curves (:mod:`agents.seeds`). A lone run of its config is a group of one, without interval.
+    """
+    from agents.seeds import aggregate, config_key, group_label, learning_curves
+
+    by_cfg: dict[str, list[str]] = {}
+    for spec in policies:
+        if Path(spec).is_dir():
+            by_cfg.setdefault(config_key(spec), []).append(spec)
+    out: dict[str, Any] = {}
+    for runs in by_cfg.values():
+        if len(runs) < 2:
+            continue
+        label = group_label(runs)
+        out[label] = {"runs": [_label(r) for r in runs], "results": aggregate(results, runs),
+                      "curves": learning_curves(runs)}
+    return out
 
 
 def learning_speed(policies: list[str], results: dict[str, Any], scenario: str = "heldout_b"
@@ -134,13 +278,15 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
     """For each run folder: the env steps its held-out evaluations took to reach the
     feedforward's position RMSE on ``scenario`` (default ``heldout_b``, the held-out plant
     under an unknown 0.8 kg load; the feedforward is measured in this same report)."""
+    from agents.train import read_eval_history
+
     ff = results.get(scenario, {}).get("ff")
     out: dict[str, Any] = {}
     for spec in policies:
         hist_path = Path(spec) / "eval" / "evaluations.json"
         if not hist_path.is_file():
             continue
-        hist = json.loads(hist_path.read_text())
+        hist = read_eval_history(hist_path.parent)[0]
         curve = [(h["timesteps"], h["scenarios"][scenario]["position_rmse_mm"]) for h in hist
                  if scenario in h["scenarios"]]
         entry: dict[str, Any] = {"scenario": scenario, "curve": curve}
@@ -151,6 +297,25 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
                          steps_to_ff_score=reached[0] if reached else None)
         out[_label(spec)] = entry
     return out
+
+
+def tuned_on(spec: str) -> str:
+    """What a controller was tuned or trained on, for the report."""
+    from agents.baselines import TUNED_ON
+
+    if spec in TUNED_ON:
+        return TUNED_ON[spec]
+    if Path(spec).is_dir():
+        from agents.policies import load_policy
+
+        policy, _, cfg = load_policy(spec)
+        sc = cfg.env_kwargs.get("scenario", "nominal")
+        rnd = sc.get("randomize", {}) if isinstance(sc, dict) else {}
+        ranges = ", ".join(f"{k} {lo:g}–{hi:g}" for k, (lo, hi) in rnd.items())
+        steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
+        return (f"PPO, {steps} env steps on the training scenario of its config "
+                f"(randomize: {ranges or 'none'})")
+    return "–"
 
 
 def _label(spec: str) -> str:
@@ -165,22 +330,52 @@ COLUMNS = [("position_rmse_mm", "position RMSE [mm]"), ("position_max_mm", "max 
 
 def markdown(report: dict[str, Any]) -> str:
     res = report["results"]
-    ctrls = list(next(iter(res.values())))
+    groups = report.get("groups") or {}
+    in_group = {r for g in groups.values() for r in g["runs"]}
+    ctrls = [c for c in next(iter(res.values())) if c not in in_group]
     out = ["# Evaluation report", "",
            f"Episode seed {report['seed']}; metrics over the last three reference periods; "
            "saturation over the whole episode; recovery: time after the impulse until "
-           f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm.", ""]
+           f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm."]
+    if groups:
+        out.append("Several runs of one config are one column: the interquartile mean over "
+                   "the runs and its 95 % stratified-bootstrap confidence interval [low, high] "
+                   "(rliable); recovery is their median. " + "; ".join(
+                       f"{g}: {len(v['runs'])} runs ({', '.join(v['runs'])})"
+                       for g, v in groups.items()) + ".")
+    if any(Path(c).name == c and c not in ("ff", "pid", "mbfb") for c in ctrls):
+        out.append("A learned policy given as a single run has no interval (n = 1): train "
+                   "several seeds (`mpa-gym train --seeds 0 1 2 3 4`) and pass all the runs.")
+    out.append("")
+    if report.get("controllers"):
+        out += ["## Controllers", "", "| controller | tuned / trained on |", "|---|---|"]
+        out += [f"| {c} | {d} |" for c, d in report["controllers"].items()] + [""]
     for key, title in COLUMNS:
-        out += [f"## {title}", "", "| scenario | " + " | ".join(ctrls) + " |",
-                "|---|" + "---|" * len(ctrls)]
+        names = ctrls + [f"{g} (IQM [95 % CI])" for g in groups]
+        out += [f"## {title}", "", "| scenario | " + " | ".join(names) + " |",
+                "|---|" + "---|" * len(names)]
         for sc, row in res.items():
             cells = []
             for c in ctrls:
                 v = row[c][key]
                 cell = "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
                 cells.append(cell + (" (terminated)" if row[c]["terminated"] else ""))
+            for g in groups.values():
+                a = g["results"][sc]
+                v = a.get(key)
+                cell = "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
+                if f"{key}_ci" in a:
+                    lo, hi = a[f"{key}_ci"]
+                    cell += f" [{lo:.3f}, {hi:.3f}]"
+                if a["terminated"]:
+                    cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
+                cells.append(cell)
             out.append(f"| {sc} | " + " | ".join(cells) + " |")
         out.append("")
+    if any(g["curves"] for g in groups.values()):
+        out += ["## Learning curves", "", "IQM and 95 % CI of the held-out position RMSE over "
+                "each group's runs at every evaluation during training: "
+                "`plots/learning_curves.png`.", ""]
     learning = report.get("learning") or {}
     if learning:
         out += ["## Learning speed", "",
@@ -197,6 +392,10 @@ def markdown(report: dict[str, Any]) -> str:
                        f"{'–' if target is None else f'{target:.3f}'} | "
                        f"{'not within the run' if steps is None else steps} | {curve} |")
         out.append("")
+    if report.get("robustness"):
+        from agents.robustness import markdown as robustness_markdown
+
+        out += robustness_markdown(report["robustness"])
     return "\n".join(out)
 
 
@@ -234,17 +433,32 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     out = Path(out_dir)
     (out / "plots").mkdir(parents=True, exist_ok=True)
     data = {"seed": report["seed"], "results": _finite(report["results"]),
-            "learning": report.get("learning", {})}
-    (out / "report.json").write_text(json.dumps(data, indent=1, allow_nan=False))
-    (out / "report.md").write_text(markdown(report))
+            "learning": report.get("learning", {}),
+            "controllers": report.get("controllers", {}),
+            "groups": _finite(report.get("groups", {}))}
+    plots = plot(report, out / "plots")
+    if report.get("robustness"):
+        from agents.robustness import plot as robustness_plot
+
+        data["robustness"] = _finite(report["robustness"])
+        plots += robustness_plot(report["robustness"], out / "plots")
+    atomic_write_text(out / "report.json", json.dumps(data, indent=1, allow_nan=False))
+    atomic_write_text(out / "report.md", markdown(report))
+    curves = {g: v["curves"] for g, v in (report.get("groups") or {}).items() if v["curves"]}
+    if curves:
+        from agents.seeds import plot_curves
+
+        plots.append(plot_curves(curves, out / "plots" / "learning_curves.png"))
     return {"json": out / "report.json", "markdown": out / "report.md",
-            "plots": out / "plots", **{f"plot_{p.stem}": p for p in plot(report, out / "plots")}}
+            "plots": out / "plots", **{f"plot_{p.stem}": p for p in plots}}
 
 
 def _finite(o: Any) -> Any:
     """JSON has no infinity: a recovery that never happens is written as "never"."""
     if isinstance(o, dict):
         return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_finite(v) for v in o]
     if isinstance(o, float) and math.isinf(o):
         return "never"
     return o

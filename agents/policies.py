@@ -3,6 +3,7 @@ controller by name (``ff``, ``pid``, ``mbfb``) or run folder."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -11,11 +12,12 @@ import numpy as np
 from agents.baselines import BASELINES, Policy, make_baseline
 from agents.config import TrainConfig
 from agents.wrappers import (
+    ActionSpec,
     FeatureSpec,
-    check_action_kwargs,
     force_stiffness_to_residual,
     integral_step,
 )
+from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
 
 
@@ -36,17 +38,37 @@ class LearnedPolicy:
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
 
+    def _mean_action(self, obs: np.ndarray) -> np.ndarray:
+        """SB3's deterministic action, ``model.predict(obs, deterministic=True)``, by the same
+        torch operations (features, actor MLP, action net: the Gaussian's mean; then the clip to
+        the action space) without predict's per-call overhead (training-mode switch, the
+        distribution object): a report calls it once per step for thousands of steps."""
+        import torch
+        from stable_baselines3.common.distributions import DiagGaussianDistribution
+
+        pol = self.model.policy
+        if not isinstance(pol.action_dist, DiagGaussianDistribution) or pol.squash_output:
+            return self.model.predict(obs, deterministic=True)[0]
+        if pol.training:
+            pol.set_training_mode(False)
+        with torch.no_grad():
+            t = torch.as_tensor(obs, device=pol.device).float()
+            mean = pol.action_net(pol.mlp_extractor.forward_actor(
+                pol.extract_features(t, pol.pi_features_extractor)))
+        a = mean.cpu().numpy().reshape((-1, *pol.action_space.shape))
+        return np.clip(a, pol.action_space.low, pol.action_space.high)
+
     @classmethod
     def from_config(cls, model: Any, normalizer: Any, cfg: TrainConfig) -> LearnedPolicy:
         """The policy for a model trained with ``cfg``'s wrappers and task."""
-        task = cfg.env_kwargs.get("task") or {}
+        task_cfg = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {})
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
         fs = None
         if aw is not None:
-            scale = TaskConfig.from_kwargs(task).residual_scale_bar
-            fs = (*check_action_kwargs(**aw)[:2], scale)
+            spec = ActionSpec(**aw)
+            fs = (spec.force_N, spec.stiffness_rel, task_cfg.residual_scale_bar)
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
-                   float(task.get("dt_s", 0.01)), fs)
+                   task_cfg.dt_s, fs)
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -67,7 +89,8 @@ class LearnedPolicy:
             obs, state = spec.features(raw, st[:, :m], st[:, m:]), st
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
-        action, _ = self.model.predict(obs, deterministic=deterministic)
+        action = (self._mean_action(obs) if deterministic
+                  else self.model.predict(obs, deterministic=False)[0])
         if self.force_stiffness is not None:
             action = force_stiffness_to_residual(action, raw, *self.force_stiffness)
         if spec is not None:
@@ -75,8 +98,12 @@ class LearnedPolicy:
         return (action[0] if single else action), state
 
 
-def load_run(run_dir: str | Path, which: str = "final") -> tuple[LearnedPolicy, Any]:
-    """The policy of a training run folder (``final`` model or the ``best`` one) and its config."""
+def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
+             ) -> tuple[Any, Any]:
+    """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
+
+    ``deployed``: the compiled single-observation path of ``agents.inference`` (for the rig's
+    real-time loop) instead of the SB3 one (batches, evaluation)."""
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
@@ -91,16 +118,30 @@ def load_run(run_dir: str | Path, which: str = "final") -> tuple[LearnedPolicy, 
     model_path = run / ("model.zip" if which == "final" else "best" / Path("best_model.zip"))
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path} not found: is {run} a finished run folder?")
-    model = PPO.load(model_path, device="cpu")
+    try:
+        model = PPO.load(model_path, device="cpu")
+    except Exception as e:  # a truncated zip, a foreign file: zipfile, pickle, torch errors
+        raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
     norm = None
     norm_path = run / ("vecnormalize.pkl" if which == "final" else "best/vecnormalize.pkl")
     if cfg.normalize:
         if not norm_path.is_file():
             raise FileNotFoundError(f"{norm_path} not found (the run normalises observations)")
-        norm = VecNormalize.load(str(norm_path), _DummyVec(model))
+        try:
+            norm = VecNormalize.load(str(norm_path), _DummyVec(model))
+        except Exception as e:  # a truncated pickle: EOFError, UnpicklingError, …
+            raise DamagedFileError(f"{norm_path} is damaged ({type(e).__name__}: {e})"
+                                   ) from None
         norm.training = False
         norm.norm_reward = False
-    return LearnedPolicy.from_config(model, norm, cfg), cfg
+    policy = LearnedPolicy.from_config(model, norm, cfg)
+    if deployed:
+        from agents.inference import DeployedPolicy
+        from mpa_gym.task.contract import obs_names
+
+        return DeployedPolicy.from_learned(
+            policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
+    return policy, cfg
 
 
 class _DummyVec:
@@ -113,17 +154,48 @@ class _DummyVec:
         self.render_mode = None
 
 
-def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None) -> tuple[Policy, str, Any]:
-    """(policy, env id, run config or None) for ``ff`` / ``pid`` / ``mbfb`` or a run folder.
+def check_control_period(cfg: TrainConfig, dt_s: float, run: str | Path) -> None:
+    """Refuse to run a trained policy at a control period other than its training ``dt_s``:
+    its tracking-error integrals are summed with the training period and its actions were
+    learned for that period (slew per step, plant response per step), so at another rate it
+    acts silently wrong."""
+    run_dt = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {}).dt_s
+    if not math.isclose(dt_s, run_dt, rel_tol=1e-9):
+        raise ValueError(f"--control-hz {1.0 / dt_s:g} (period {dt_s:g} s) vs the run's dt_s "
+                         f"{run_dt:g} s = {1.0 / run_dt:g} Hz: policy {run} was trained at "
+                         f"{1.0 / run_dt:g} Hz and acts at that rate only; roll it out with "
+                         f"--control-hz {1.0 / run_dt:g}")
 
-    Baselines are built for the env made with ``env_kwargs`` (scenario, stiffness, task).
+
+def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False
+                ) -> tuple[Policy, str, Any]:
+    """(policy, env id, run config or None) for ``ff`` / ``pid`` / ``mbfb``, ``excite`` (the
+    identification excitation) or a run folder.
+
+    Baselines are built for the env made with ``env_kwargs`` (scenario, stiffness, task); a run
+    is loaded ``deployed`` (``load_run``) when asked, and refused (``check_control_period``,
+    before its model is loaded) when ``env_kwargs`` sets a ``task.dt_s`` (the control period it
+    will run at: rollout's ``--control-hz``) other than its training one.
     """
+    if spec == "excite":  # system-identification excitation (agents.excite)
+        from agents.excite import ExcitePolicy
+        from mpa_gym.task.plan import make_plan
+
+        kw = env_kwargs or {}
+        return (ExcitePolicy(make_plan(kw.get("scenario", "nominal"), kw.get("stiffness"),
+                                       TaskConfig.from_kwargs(kw.get("task")))),
+                "MPALegResidual-v0", None)
     if spec in BASELINES:
         kw = env_kwargs or {}
         return (make_baseline(spec, kw.get("scenario", "nominal"), kw.get("stiffness"),
                               kw.get("task")), "MPALegResidual-v0", None)
     if Path(spec).is_dir():
-        policy, cfg = load_run(spec)
+        dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
+        if dt is not None and (Path(spec) / "config.yaml").is_file():
+            from agents.config import load_config
+
+            check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
+        policy, cfg = load_run(spec, deployed=deployed)
         return policy, cfg.env_id, cfg
     raise ValueError(f"policy={spec!r} is neither a baseline {sorted(BASELINES)} nor a run "
                      "folder")

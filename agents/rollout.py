@@ -1,123 +1,223 @@
 """Roll a controller out on the rig: `mpa-gym rollout --policy P --device URL [--dry-run]`.
 
-Pre-flight (link, sensor sanity, low-pressure test), then the episodes; every step is appended to
-a JSON-lines log and flushed as it happens, so a killed process leaves a log readable up to its
-last step (``read_log`` skips a torn last line). The end prints the evaluation report's metrics.
-``--dry-run`` starts the device emulator on UDP loopback and rolls out against it.
+Pre-flight (link, sensor sanity, low-pressure test), then the episodes. The log is JSON lines,
+appended to and flushed step by step, so a killed process leaves it readable up to its last step.
+Each session (one ``rollout`` call) starts with a ``{"event": "session", ...}`` header naming its
+policy, scenario and rate, so sessions appended to one file stay apart; ``read_log`` skips a torn
+line (a kill mid-write) and goes on, and says how many it skipped.
+
+Every stop is written to the log as ``{"event": "stopped", "fault": reason}`` and returned as
+``stopped``: a safety stop of the env (position bound, stale telemetry, over-pressure, device
+fault: the rest of the session is not run), a fault in the pre-flight or a reset, Ctrl-C or
+SIGTERM. The rig is vented in each case. ``--dry-run`` starts the device emulator on UDP
+loopback and rolls out against it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import datetime
 import json
 import math
 import os
+import signal
 import time
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
 from agents.evaluate import Trace, metrics
 from agents.policies import load_policy
-from mpa_gym.hardware import protocol as proto
-from mpa_gym.hardware.env import HardwareFault, HardwareLegEnv
-from mpa_gym.model.params import BAR
+from mpa_gym.hardware.env import CONTROL_HZ, CONTROL_HZ_RANGE, HardwareFault, HardwareLegEnv
+from mpa_gym.hardware.realtime import realtime as rt_context
+from mpa_gym.model.params import BAR, check_range
+from mpa_gym.task.config import END_STOPS_M
+from mpa_gym.task.contract import SAFETY_CLIPPED
 
 
 def preflight(env: HardwareLegEnv, test_bar: float = 0.5, hold_s: float = 0.3,
               link_timeout_s: float = 2.0) -> dict[str, Any]:
     """Link, sensor sanity and a low-pressure test; raises HardwareFault naming what failed."""
     t0 = time.monotonic()
-    while env._tel is None and time.monotonic() - t0 < link_timeout_s:
+    while env.telemetry is None and time.monotonic() - t0 < link_timeout_s:
         env.vent()  # also tells a UDP device where to send its telemetry
-        env._read(time.monotonic() + 0.05)
-    if env._tel is None:
+        env.poll(0.05)
+    if env.telemetry is None:
         raise HardwareFault(f"pre-flight: no telemetry within {link_timeout_s:g} s: check the "
                             "device is on, the URL, cable / network, and that nothing else "
                             "holds the port")
     settle_end = time.monotonic() + 3.0  # a vented leg sinks onto its end stop: let it rest
-    while abs(env._tel.v_mps) > 0.05 and time.monotonic() < settle_end:
+    while abs(env.telemetry.v_mps) > 0.05 and time.monotonic() < settle_end:
         env.vent()
-        env._read(time.monotonic() + 0.05)
-    t = env._tel
-    lo, hi = 0.6, 0.87
+        env.poll(0.05)
+    t = env.telemetry
+    lo, hi = END_STOPS_M
     if not (lo <= t.x_m <= hi and math.isfinite(t.v_mps) and abs(t.v_mps) < 0.5):
         raise HardwareFault(f"pre-flight: implausible encoder reading X = {t.x_m:.4f} m, V = "
-                            f"{t.v_mps:.3f} m/s (expected X in [{lo}, {hi}] m, |V| < 0.5 m/s)")
-    end = time.monotonic() + hold_s
-    while time.monotonic() < end:  # both MPAs at a low pressure
-        env._send(proto.Command, test_bar * BAR, test_bar * BAR)
-        env._read(time.monotonic() + 0.01)
-    p = np.array([env._tel.pe_Pa, env._tel.pf_Pa]) / BAR
+                            f"{t.v_mps:.3f} m/s (expected X in [{lo}, {hi}] m, the end stops, "
+                            "|V| < 0.5 m/s)")
+    tel = env.hold(test_bar, test_bar, hold_s)  # both MPAs at a low pressure
     env.vent()
+    p = np.array([tel.pe_Pa, tel.pf_Pa]) / BAR
     if np.any(np.abs(p - test_bar) > 0.2):
         raise HardwareFault(f"pre-flight: low-pressure test commanded {test_bar} bar, measured "
                             f"({p[0]:.2f}, {p[1]:.2f}) bar: check supply and regulators")
     return {"x_m": t.x_m, "v_mps": t.v_mps, "test_pressure_bar": p.tolist()}
 
 
-def read_log(path: str | Path) -> list[dict[str, Any]]:
-    """The complete records of a rollout log (a torn last line from a kill is skipped)."""
-    out = []
-    for line in Path(path).read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            break
+class LogRecords(list):  # type: ignore[type-arg]
+    """The complete records of a rollout log, in order; ``skipped``: torn lines left out."""
+
+    skipped: int = 0
+
+
+def read_log(path: str | Path) -> LogRecords:
+    """Every complete record of a rollout log; a torn line (a kill mid-write) is skipped and
+    counted in ``.skipped``, and reading goes on past it."""
+    out = LogRecords()
+    with Path(path).open("rb") as f:
+        for line in f:
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                out.skipped += 1
+                continue
+            if isinstance(rec, dict):
+                out.append(rec)
+            else:
+                out.skipped += 1
     return out
 
 
+def open_log(path: str | Path) -> IO[str]:
+    """The log opened for appending (line-buffered), after a newline if the file ends in a torn
+    line, so the next record starts on a line of its own. Fails before the rig is touched."""
+    log = Path(path)
+    if log.is_dir():
+        raise ValueError(f"--log {str(log)!r} is a folder; give a file (e.g. {log}/rollout.jsonl)")
+    try:
+        log.parent.mkdir(parents=True, exist_ok=True)
+        f = log.open("a+", buffering=1)
+    except OSError as e:
+        raise ValueError(f"--log {str(log)!r} cannot be opened for writing: {e.strerror}"
+                         ) from None
+    if f.tell() > 0:
+        f.seek(f.tell() - 1)
+        if f.read(1) != "\n":
+            f.write("\n")
+    return f
+
+
+def stop_reason(exc: BaseException, vented: bool = True) -> str:
+    """What stopped a rollout, as written to the log (``vented``: the vent after it went out)."""
+    if isinstance(exc, KeyboardInterrupt):
+        signum = getattr(exc, "signum", signal.SIGINT)
+        return (f"interrupted by {signal.Signals(signum).name}; "
+                + ("rig vented" if vented else "venting FAILED"))
+    return f"{type(exc).__name__}: {exc}"
+
+
 def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int = 1,
-            scenario: Any = "nominal", control_hz: float = 100.0, episode_s: float | None = None,
-            seed: int = 0) -> dict[str, Any]:
-    """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing."""
-    # a baseline's integrator and feedforward timing follow the rig's control period
+            scenario: Any = "nominal", control_hz: float = CONTROL_HZ,
+            episode_s: float | None = None, seed: int = 0, realtime: bool = False
+            ) -> dict[str, Any]:
+    """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing, and
+    ``stopped`` (the reason) if the env's safety layer ended an episode early.
+
+    ``realtime``: real-time scheduling and no garbage collection for the episodes, as far as
+    permitted (``mpa_gym.hardware.realtime``; the timing says what was granted)."""
+    check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= 10_000:
+        raise ValueError(f"--episodes={episodes!r} must be a whole number in [1, 10000]")
+    if episode_s is not None:
+        check_range("--episode-s", episode_s, 1.0 / control_hz, 3600.0, unit="s")
+    # a baseline's integrator and feedforward timing follow the rig's control period; a run is
+    # refused at a rate other than its training one (load_policy), before the rig is touched
     policy, env_id, run_cfg = load_policy(policy_spec, {"scenario": scenario,
-                                                        "task": {"dt_s": 1.0 / control_hz}})
+                                                        "task": {"dt_s": 1.0 / control_hz}},
+                                          deployed=True)  # a run: its compiled action path
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
     if task["episode_s"] is None:
         task.pop("episode_s")
-    env = HardwareLegEnv(device, scenario=scenario, task=task,
-                         residual=env_id == "MPALegResidual-v0", control_hz=control_hz)
-    log = Path(log_path)
-    log.parent.mkdir(parents=True, exist_ok=True)
+    f = open_log(log_path)
     results: list[dict[str, Any]] = []
-    with env, log.open("a", buffering=1) as f:
-        pre = preflight(env)
-        f.write(json.dumps({"event": "preflight", **pre}) + "\n")
-        for ep in range(episodes):
-            obs, info = env.reset(seed=seed + ep)
-            state, start = None, np.array([True])
-            rows = []
-            while True:
-                action, state = policy.predict(obs, state, start, deterministic=True)
-                start = np.array([False])
-                obs, r, term, trunc, info = env.step(action)
-                rec = {"episode": ep, "reward": r, "terminated": term,
-                       **{k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                          for k, v in info.items()}}
-                f.write(json.dumps(rec, allow_nan=True) + "\n")  # line-buffered: one write
-                rows.append(rec)
-                if term or trunc:
+    stopped: str | None = None
+    try:
+        env = HardwareLegEnv(device, scenario=scenario, task=task,
+                             residual=env_id == "MPALegResidual-v0", control_hz=control_hz)
+    except BaseException as e:
+        _write(f, {"event": "stopped", "fault": stop_reason(e)})
+        f.close()
+        raise
+    with env, f, (rt_context() if realtime else contextlib.nullcontext()) as rt_report:
+        _write(f, {"event": "session", "started_utc": datetime.datetime.now(datetime.timezone.utc)
+                   .isoformat(timespec="seconds"), "pid": os.getpid(), "policy": policy_spec,
+                   "scenario": env.plan.scenario.name, "control_hz": control_hz,
+                   "episodes": episodes, "seed": seed})
+        try:
+            pre = preflight(env)
+            _write(f, {"event": "preflight", **pre})
+            for ep in range(episodes):
+                obs, info = env.reset(seed=seed + ep)
+                state, start = None, np.array([True])
+                rows = []
+                while True:
+                    action, state = policy.predict(obs, state, start, deterministic=True)
+                    start = np.array([False])
+                    obs, r, term, trunc, info = env.step(action)
+                    rec = {"episode": ep, "reward": r, "terminated": term,
+                           **{k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                              for k, v in info.items()}}
+                    f.write(json.dumps(rec, allow_nan=True) + "\n")  # line-buffered: one write
+                    rows.append(rec)
+                    if term or trunc:
+                        break
+                os.fsync(f.fileno())
+                results.append(_episode_metrics(rows, env))
+                if term:  # a safety stop: the rig is vented, the session ends here
+                    stopped = f"episode {ep}: {info.get('fault', 'terminated')}"
+                    _write(f, {"event": "stopped", "episode": ep, "fault": stopped})
                     break
-            os.fsync(f.fileno())
-            results.append(_episode_metrics(rows, env))
+        except BaseException as e:  # a fault, Ctrl-C, SIGTERM: vent, then say why in the log
+            try:
+                env.vent()
+            except BaseException as v:  # a dead link, a second Ctrl-C: the reason still goes
+                _write(f, {"event": "stopped", "fault": stop_reason(e, vented=False),
+                           "vent_fault": stop_reason(v, vented=False)})
+                raise  # the vent's failure (the original as its context): the rig may be live
+            _write(f, {"event": "stopped", "fault": stop_reason(e)})
+            raise
     period = np.array(env.timing["period_s"])
     jitter = np.abs(period - env.cfg.dt_s)
-    return {"episodes": results, "log": str(log),
-            "timing": {"control_hz": control_hz, "overruns": env.overruns,
-                       "p99_jitter_ms": float(np.percentile(jitter, 99) * 1e3) if jitter.size
-                       else None,
-                       "median_latency_ms": float(np.nanmedian(env.timing["latency_s"]) * 1e3)
-                       if env.timing["latency_s"] else None}}
+    out: dict[str, Any] = {
+        "episodes": results, "log": str(log_path),
+        "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
+                   "steps": len(env.timing["latency_s"]), "realtime": rt_report,
+                   "p99_jitter_ms": float(np.percentile(jitter, 99) * 1e3) if jitter.size
+                   else None,
+                   "median_latency_ms": float(np.nanmedian(env.timing["latency_s"]) * 1e3)
+                   if env.timing["latency_s"] else None}}
+    if stopped is not None:
+        out["stopped"] = stopped
+    return out
+
+
+def _write(f: IO[str], rec: dict[str, Any]) -> None:
+    """One record, flushed and synced (events are rare; steps are written without the sync)."""
+    f.write(json.dumps(rec, allow_nan=True) + "\n")
+    f.flush()
+    os.fsync(f.fileno())
 
 
 def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv) -> dict[str, Any]:
     col = lambda k: np.array([r[k] for r in rows])  # noqa: E731
     tr = Trace(col("t_s"), col("x_m"), col("x_ref_m"), col("k_N_per_m"), col("k_ref_N_per_m"),
-               col("pressure_bar"), col("pressure_cmd_bar"), (col("safety") & 1) > 0,
+               col("pressure_bar"), col("pressure_cmd_bar"), (col("safety") & SAFETY_CLIPPED) > 0,
                col("reward"), bool(rows[-1]["terminated"]))
     m = metrics(tr, env.plan.design.reference.period, None)
     if "fault" in rows[-1]:

@@ -2,18 +2,44 @@
 
 Reads top to bottom like CleanRL's scripts: build the native vector env (the configured
 tracking-error features and force–stiffness actions, the SB3 adapter, VecMonitor, VecNormalize),
-the callbacks (held-out evaluation, checkpoints, tracking scalars for TensorBoard), the PPO model,
-then learn.
+the callbacks (held-out evaluation, checkpoints, tracking scalars for TensorBoard, the NaN guard,
+the stop request), the PPO model, then learn.
+
 A run folder holds ``config.yaml`` (the resolved config), ``model.zip``, ``vecnormalize.pkl``,
 ``eval/evaluations.npz`` + ``eval/evaluations.json``, ``best/``, ``checkpoints/`` and ``tb/``.
-Whatever happens (Ctrl-C included), the model and normaliser reached so far are saved.
+
+Nothing is lost and nothing rewinds silently:
+
+- every file is written atomically (temporary file + rename): a kill leaves the old complete
+  file or the new one;
+- a checkpoint is ``checkpoints/ppo_<N>_steps.zip`` + ``ppo_vecnormalize_<N>_steps.pkl`` and,
+  written last, ``ppo_<N>_steps.json`` (the step count and the files' sizes): only a checkpoint
+  with its ``.json`` is complete;
+- Ctrl-C and SIGTERM stop at the next env step and save a checkpoint and ``model.zip`` like a
+  normal end (the CLI then exits 130 / 143); SIGKILL loses at most the steps since the last
+  checkpoint (``checkpoint_freq``);
+- ``--resume`` continues from the newest complete state (checkpoint or ``model.zip``: model,
+  normaliser, step count) and cuts the evaluation history back to it, saying what it dropped; a
+  ``best/`` saved by a dropped evaluation is re-derived from the checkpoint at the best kept one,
+  or removed, and said;
+- ``config.yaml`` records the step budget (``--n-timesteps``; on resume, the steps done + N), so
+  a plain ``--resume`` after a kill trains to the budget the run was started with;
+- a model with a non-finite weight (NaN guard, after every PPO update including the last) stops
+  training and is never saved: ``model.zip`` and the checkpoints keep the last finite state.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
+import os
+import pickle
+import signal
+import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,17 +50,23 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import (
     BaseCallback,
     CallbackList,
-    CheckpointCallback,
     EvalCallback,
 )
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from agents.config import ConfigError, TrainConfig, load_config
-from agents.evaluate import metrics, run_episode
+from agents.config import ConfigError, TrainConfig, load_config, parse_config
+from agents.evaluate import Job, eval_task, metrics, run_batch
 from agents.policies import LearnedPolicy
 from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
+from mpa_gym.files import (
+    DamagedFileError,
+    atomic_save,
+    atomic_write_text,
+    read_yaml,
+    remove_stale_temporaries,
+)
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
 
@@ -89,7 +121,8 @@ class HeldOutEval(EvalCallback):
     tracking metrics of each scenario logged beside the return. Writes ``evaluations.npz`` in
     EvalCallback's format and ``evaluations.json`` with the per-scenario metrics."""
 
-    def __init__(self, cfg: TrainConfig, run_dir: Path, eval_freq_calls: int) -> None:
+    def __init__(self, cfg: TrainConfig, run_dir: Path, eval_freq_calls: int,
+                 on_evaluation: Callable[[dict[str, Any]], bool] | None = None) -> None:
         placeholder = gym.make(cfg.env_id)  # EvalCallback wants an env; we roll out our own
         super().__init__(placeholder, eval_freq=eval_freq_calls, n_eval_episodes=1,
                          log_path=str(run_dir / "eval"),
@@ -98,6 +131,9 @@ class HeldOutEval(EvalCallback):
         self.scenarios = [load_scenario(s) for s in cfg.eval_scenarios]
         self.history: list[dict[str, Any]] = []
         self.json_path = run_dir / "eval" / "evaluations.json"
+        # called with each evaluation's entry; returning False stops training (tuning's pruner)
+        self.on_evaluation = on_evaluation
+        self._go_on = True
 
     def _init_callback(self) -> None:
         # EvalCallback's own init compares env types; our rollouts use single envs, so only
@@ -107,12 +143,13 @@ class HeldOutEval(EvalCallback):
                 Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(self.best_model_save_path or ".").mkdir(parents=True, exist_ok=True)
         if self.json_path.is_file():  # a resumed run keeps its history
-            self.history = json.loads(self.json_path.read_text())
-            npz = np.load(f"{self.log_path}.npz")
-            self.evaluations_timesteps = list(npz["timesteps"])
-            self.evaluations_results = [list(r) for r in npz["results"]]
-            self.evaluations_length = [list(r) for r in npz["ep_lengths"]]
-            self.best_mean_reward = float(max(np.mean(r) for r in self.evaluations_results))
+            self.history, ts, res, lens = read_eval_history(self.json_path.parent)
+            self.evaluations_timesteps, self.evaluations_results = ts, res
+            self.evaluations_length = lens
+            # the best kept evaluation is the bar to beat while best/ holds its model; without
+            # one (removed by reconcile_best) the next evaluation writes best/
+            if res and (Path(self.best_model_save_path or ".") / "best_model.zip").is_file():
+                self.best_mean_reward = float(max(np.mean(r) for r in res))
 
     def _on_training_start(self) -> None:
         if not self.history:  # a fresh run: evaluate the initial policy too (learning curves)
@@ -121,7 +158,7 @@ class HeldOutEval(EvalCallback):
     def _on_step(self) -> bool:
         if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
             self._evaluate()
-        return True
+        return self._go_on
 
     def _evaluate(self) -> None:
         if not self.scenarios:
@@ -130,12 +167,11 @@ class HeldOutEval(EvalCallback):
         policy = LearnedPolicy.from_config(self.model, norm, self.cfg)
         entry: dict[str, Any] = {"timesteps": int(self.num_timesteps), "scenarios": {}}
         returns, lengths = [], []
-        for sc in self.scenarios:
-            task = {k: v for k, v in (self.cfg.env_kwargs.get("task") or {}).items()
-                    if k != "episode_s"}
-            env = gym.make(self.cfg.env_id, scenario=sc, task=task)
-            tr = run_episode(env, policy, self.cfg.eval_seed)
-            env.close()
+        # all scenarios at once, one batched policy call per step (agents.evaluate.run_batch)
+        task = eval_task(self.cfg)
+        traces = run_batch([Job(sc, policy, self.cfg.env_id, task) for sc in self.scenarios],
+                           self.cfg.eval_seed)
+        for sc, tr in zip(self.scenarios, traces, strict=True):
             m = metrics(tr, sc.reference.period, None)
             entry["scenarios"][sc.name] = m
             returns.append(m["return"])
@@ -147,82 +183,472 @@ class HeldOutEval(EvalCallback):
         self.evaluations_timesteps.append(self.num_timesteps)
         self.evaluations_results.append(returns)
         self.evaluations_length.append(lengths)
-        np.savez(self.log_path, timesteps=self.evaluations_timesteps,
-                 results=self.evaluations_results, ep_lengths=self.evaluations_length)
         self.history.append(entry)
-        self.json_path.write_text(json.dumps(self.history, indent=1))
+        write_eval_history(self.json_path.parent, self.history, self.evaluations_timesteps,
+                           self.evaluations_results, self.evaluations_length)
+        if self.on_evaluation is not None:
+            self._go_on = bool(self.on_evaluation(entry))
         self.last_mean_reward = mean_ret
-        if mean_ret > self.best_mean_reward:
+        if mean_ret > self.best_mean_reward and model_is_finite(self.model):
             self.best_mean_reward = mean_ret
             assert self.best_model_save_path is not None
-            self.model.save(Path(self.best_model_save_path) / "best_model")
-            if norm is not None:
-                norm.save(str(Path(self.best_model_save_path) / "vecnormalize.pkl"))
+            save_state(self.model, Path(self.best_model_save_path) / "best_model.zip",
+                       Path(self.best_model_save_path) / "vecnormalize.pkl")
 
 
-def _resolved(cfg: TrainConfig, seed: int) -> dict[str, Any]:
+# ----------------------------------------------------------------------------- run-folder state
+EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
+
+
+class TrainingStopped(Exception):
+    """Training stopped early; what was reached is saved (``run``, ``timesteps``).
+
+    ``signum``: the signal that asked for the stop (SIGINT, SIGTERM), or None when the NaN guard
+    stopped it (``reason`` says why)."""
+
+    def __init__(self, run: Path, timesteps: int, reason: str, signum: int | None = None
+                 ) -> None:
+        super().__init__(reason)
+        self.run, self.timesteps, self.reason, self.signum = run, timesteps, reason, signum
+
+
+class NonFiniteModel(RuntimeError):
+    """The NaN guard found a non-finite weight or normaliser statistic."""
+
+
+def model_is_finite(model: Any) -> bool:
+    """Every policy weight and (if any) every VecNormalize statistic is finite."""
+    import torch
+
+    with torch.no_grad():
+        if not all(bool(torch.isfinite(p).all()) for p in model.policy.parameters()):
+            return False
+    norm = model.get_vec_normalize_env()
+    if norm is not None:
+        stats = [norm.obs_rms.mean, norm.obs_rms.var, norm.ret_rms.mean, norm.ret_rms.var]
+        if not all(np.all(np.isfinite(s)) for s in stats):
+            return False
+    return True
+
+
+def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
+    """The model and its normaliser, each written atomically."""
+    atomic_save(model_path, model.save)
+    norm = model.get_vec_normalize_env()
+    if norm is not None and norm_path is not None:
+        atomic_save(norm_path, lambda f: pickle.dump(norm, f))
+
+
+def checkpoint_paths(run: Path, steps: int) -> dict[str, Path]:
+    d = run / "checkpoints"
+    return {"model": d / f"ppo_{steps}_steps.zip",
+            "normalizer": d / f"ppo_vecnormalize_{steps}_steps.pkl",
+            "marker": d / f"ppo_{steps}_steps.json"}
+
+
+def write_checkpoint(model: Any, run: Path) -> Path:
+    """A complete checkpoint at the model's step count: model, normaliser, then the marker
+    (written last, so a checkpoint without it was torn by a kill and is ignored)."""
+    steps = int(model.num_timesteps)
+    p = checkpoint_paths(run, steps)
+    has_norm = model.get_vec_normalize_env() is not None
+    save_state(model, p["model"], p["normalizer"])
+    files = {p["model"].name: p["model"].stat().st_size}
+    if has_norm:
+        files[p["normalizer"].name] = p["normalizer"].stat().st_size
+    atomic_write_text(p["marker"], json.dumps({"timesteps": steps, "files": files}))
+    return p["model"]
+
+
+def save_final(model: Any, run: Path) -> None:
+    """A checkpoint at the current step count, then ``model.zip`` + ``vecnormalize.pkl``."""
+    write_checkpoint(model, run)
+    save_state(model, run / "model.zip", run / "vecnormalize.pkl")
+
+
+def zip_timesteps(path: Path) -> int:
+    """The step count stored in an SB3 model file (without building the model)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            return int(json.loads(z.read("data"))["num_timesteps"])
+    except (zipfile.BadZipFile, KeyError, ValueError, OSError) as e:
+        raise DamagedFileError(f"{path} is damaged (not a complete SB3 model file: {e})"
+                               ) from None
+
+
+def checked_checkpoint(marker: Path) -> int:
+    """The step count of the checkpoint whose marker is ``marker``, after checking its files'
+    sizes; raises (ValueError, KeyError, TypeError, OSError) if it is incomplete or damaged."""
+    meta = json.loads(marker.read_text())
+    steps = int(meta["timesteps"])
+    for name, size in meta["files"].items():
+        if (marker.parent / name).stat().st_size != size:
+            raise ValueError(f"{name} has the wrong size")
+    return steps
+
+
+def latest_state(run: Path, normalized: bool) -> tuple[int, Path, Path | None, list[str]] | None:
+    """The newest complete state of a run: (steps, model file, normaliser file, notes) or None.
+
+    Candidates are the complete checkpoints and ``model.zip`` (+ ``vecnormalize.pkl``); a damaged
+    or incomplete one is skipped and named in the notes."""
+    notes: list[str] = []
+    cands: list[tuple[int, Path, Path | None]] = []
+    for marker in (run / "checkpoints").glob("ppo_*_steps.json"):
+        try:
+            steps = checked_checkpoint(marker)
+        except (ValueError, KeyError, TypeError, OSError) as e:
+            notes.append(f"skipped damaged checkpoint {marker.name} ({e})")
+            continue
+        p = checkpoint_paths(run, steps)
+        cands.append((steps, p["model"], p["normalizer"] if normalized else None))
+    root = run / "model.zip"
+    if root.is_file():
+        try:
+            norm = run / "vecnormalize.pkl" if normalized else None
+            if norm is not None and not norm.is_file():
+                raise DamagedFileError(f"{norm} is missing")
+            cands.append((zip_timesteps(root), root, norm))
+        except DamagedFileError as e:
+            notes.append(f"skipped model.zip ({e})")
+    if not cands:
+        return None
+    # newest first; at equal step counts a checkpoint and model.zip hold the same state
+    steps, model, norm = max(cands, key=lambda c: (c[0], c[1] != root))
+    if root.is_file() and model != root:
+        try:
+            root_steps = zip_timesteps(root)
+        except DamagedFileError:
+            root_steps = -1
+        if root_steps > steps:
+            notes.append(f"model.zip ({root_steps} steps) is newer but unusable; rewinding to "
+                         f"{steps} steps")
+    return steps, model, norm, notes
+
+
+def read_eval_history(folder: Path) -> tuple[list[dict[str, Any]], list[int], list[list[float]],
+                                             list[list[int]]]:
+    """(history, timesteps, returns, lengths) of ``eval/``; a damaged file is named."""
+    jpath, npath = folder / EVAL_JSON, folder / EVAL_NPZ
+    try:
+        history = json.loads(jpath.read_text())
+        if not isinstance(history, list):
+            raise ValueError("not a list of evaluations")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DamagedFileError(f"{jpath} is damaged (not a JSON list of evaluations: {e}); "
+                               "delete it (and evaluations.npz) to start the history afresh"
+                               ) from None
+    if not npath.is_file():
+        return history, [], [], []
+    try:
+        with np.load(npath) as npz:
+            ts = [int(t) for t in npz["timesteps"]]
+            res = [list(map(float, r)) for r in npz["results"]]
+            lens = [list(map(int, r)) for r in npz["ep_lengths"]]
+    except Exception as e:  # zipfile, pickle and numpy's own errors: all mean "damaged"
+        raise DamagedFileError(f"{npath} is damaged ({type(e).__name__}: {e}); delete it (and "
+                               "evaluations.json) to start the history afresh") from None
+    return history, ts, res, lens
+
+
+def write_eval_history(folder: Path, history: list[dict[str, Any]], ts: list[int],
+                       res: list[list[float]], lens: list[list[int]]) -> None:
+    atomic_save(folder / EVAL_NPZ, lambda f: np.savez(f, timesteps=np.array(ts, dtype=np.int64),
+                                                      results=np.array(res),
+                                                      ep_lengths=np.array(lens)))
+    atomic_write_text(folder / EVAL_JSON, json.dumps(history, indent=1))
+
+
+def cut_eval_history(folder: Path, steps: int) -> int:
+    """Drop the evaluations after ``steps`` (made by a run later killed); returns how many."""
+    if not (folder / EVAL_JSON).is_file():
+        return 0
+    history, ts, res, lens = read_eval_history(folder)
+    keep = [i for i, t in enumerate(ts) if t <= steps]
+    kept_hist = [h for h in history if int(h.get("timesteps", 0)) <= steps]
+    dropped = len(history) - len(kept_hist)
+    if dropped or len(keep) != len(ts):
+        write_eval_history(folder, kept_hist, [ts[i] for i in keep], [res[i] for i in keep],
+                           [lens[i] for i in keep])
+    return dropped
+
+
+def reconcile_best(run: Path, steps: int, normalized: bool) -> str | None:
+    """After a resume cut the evaluation history back to ``steps``: a ``best/`` saved by a
+    dropped evaluation belongs to the discarded timeline. It is re-derived from the checkpoint
+    at the best kept evaluation where there is one (EvalCallback keeps the first best), else
+    removed (the next evaluation writes a new one). Returns what was done, or None."""
+    best = run / "best" / "best_model.zip"
+    if not best.is_file():
+        return None
+    try:
+        best_steps = zip_timesteps(best)
+    except DamagedFileError:
+        best_steps = -1
+    if 0 <= best_steps <= steps:
+        return None
+    was = (f"best/ was saved at step {best_steps} by an evaluation after step {steps}, dropped "
+           "with the interrupted run" if best_steps >= 0 else "best/best_model.zip is damaged")
+    _, ts, res, _ = (read_eval_history(run / "eval") if (run / "eval" / EVAL_JSON).is_file()
+                     else ([], [], [], []))
+    norm = run / "best" / "vecnormalize.pkl"
+    best.unlink()  # the model goes first and comes back last: a kill leaves no mixed pair
+    norm.unlink(missing_ok=True)
+    if res:
+        i = int(np.argmax([np.mean(r) for r in res]))
+        ck = checkpoint_paths(run, ts[i])
+        try:
+            complete = checked_checkpoint(ck["marker"]) == ts[i]
+        except (ValueError, KeyError, TypeError, OSError):
+            complete = False
+        if complete:
+            if normalized:
+                atomic_save(norm, lambda f: f.write(ck["normalizer"].read_bytes()))
+            atomic_save(best, lambda f: f.write(ck["model"].read_bytes()))
+            return (f"{was}: re-derived it from {ck['model'].relative_to(run)}, the best kept "
+                    f"evaluation (step {ts[i]}, mean return {np.mean(res[i]):.4g})")
+    return (f"{was}: removed it (no checkpoint at the best kept evaluation); the next "
+            "evaluation writes a new one")
+
+
+# ----------------------------------------------------------------------------- callbacks
+class CompleteCheckpoints(BaseCallback):
+    """A complete checkpoint (``write_checkpoint``) every ``every`` callback calls."""
+
+    def __init__(self, run: Path, every: int) -> None:
+        super().__init__()
+        self.run, self.every = run, every
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.every == 0:
+            write_checkpoint(self.model, self.run)
+        return True
+
+
+class NaNGuard(BaseCallback):
+    """Before each rollout (so after each PPO update): every weight and normaliser statistic
+    finite, or ``NonFiniteModel`` stops training before a NaN policy acts or is saved."""
+
+    def _on_rollout_start(self) -> None:
+        if not model_is_finite(self.model):
+            raise NonFiniteModel(f"the PPO update before step {self.model.num_timesteps} made a "
+                                 "weight or a normaliser statistic non-finite")
+
+    def _on_step(self) -> bool:
+        return True
+
+
+class StopRequest(BaseCallback):
+    """Ends ``learn`` at the next env step once a signal asked for it (``requested``)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.requested: int | None = None
+
+    def _on_step(self) -> bool:
+        return self.requested is None
+
+
+@contextlib.contextmanager
+def _signals_stop(stop: StopRequest) -> Iterator[None]:
+    """SIGINT / SIGTERM ask ``stop`` to end training at the next step (a second Ctrl-C raises
+    KeyboardInterrupt at once); the previous handlers come back afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if stop.requested is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stop.requested = signum
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def _say(msg: str) -> None:
+    print(f"mpa-gym train: {msg}", file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------- training
+def _resolved(cfg: TrainConfig, seed: int, n_timesteps: int | None = None) -> dict[str, Any]:
+    """The config as the run uses it: its seed and its step budget (``--n-timesteps``), so a
+    resumed run continues with both."""
     data = copy.deepcopy(cfg.raw)
     data.setdefault("mpa_gym", {})["seed"] = seed
+    if n_timesteps is not None:
+        data[cfg.env_id]["n_timesteps"] = int(n_timesteps)
     return data
+
+
+def _new_model(cfg: TrainConfig, env: VecEnv, run: Path, seed: int, verbose: int) -> PPO:
+    ppo_kwargs = {**cfg.ppo_kwargs}
+    for key in ("learning_rate", "clip_range", "clip_range_vf"):
+        if ppo_kwargs.get(key) is not None:
+            ppo_kwargs[key] = _schedule(ppo_kwargs[key])
+    pk = dict(cfg.policy_kwargs)
+    if "activation_fn" in pk:
+        import torch.nn as nn
+
+        pk["activation_fn"] = getattr(nn, pk["activation_fn"].split(".")[1])
+    return PPO(cfg.policy, env, policy_kwargs=pk, seed=seed, device="cpu",
+               tensorboard_log=str(run / "tb"), verbose=verbose, **ppo_kwargs)
+
+
+def with_scenario(config: str | Path | None, scenario: str | Path) -> TrainConfig:
+    """The config with its training scenario (``env_kwargs.scenario``) replaced by ``scenario``:
+    a built-in name is kept as the name, a YAML file (``mpa-gym identify --out``) is copied in,
+    so the run folder's config.yaml holds the plants it was trained on."""
+    sc = load_scenario(scenario)  # a missing file or a bad scenario: its error, before anything
+    src = str(config or DEFAULT_CONFIG)
+    cfg = load_config(src)
+    entry: Any = str(scenario) if not Path(scenario).suffix else read_yaml(
+        scenario, "scenario file", ConfigError)
+    if isinstance(entry, dict):
+        entry.setdefault("name", sc.name)
+    data = copy.deepcopy(cfg.raw)
+    data[cfg.env_id].setdefault("env_kwargs", {})["scenario"] = entry
+    return parse_config(data, f"{src} with --scenario {scenario}")
 
 
 def train(config: str | Path | None = None, run_dir: str | Path | None = None,
           seed: int | None = None, resume: str | Path | None = None,
-          n_timesteps: int | None = None, progress: bool = True, verbose: int = 0) -> Path:
-    """Train (or resume) PPO; returns the run folder."""
+          n_timesteps: int | None = None, progress: bool = True, verbose: int = 0,
+          on_evaluation: Callable[[dict[str, Any]], bool] | None = None,
+          scenario: str | Path | None = None) -> Path:
+    """Train (or resume) PPO; returns the run folder. ``on_evaluation`` is called with each
+    held-out evaluation (``eval/evaluations.json``'s entry); returning False stops training.
+    ``scenario`` replaces the config's training scenario (:func:`with_scenario`).
+
+    Raises ``TrainingStopped`` after saving when a signal (Ctrl-C, SIGTERM) or the NaN guard
+    ended training early."""
+    state = None
     if resume is not None:
         run = Path(resume)
-        if not (run / "config.yaml").is_file() or not (run / "model.zip").is_file():
-            raise ConfigError(f"--resume {run}: not a run folder (needs config.yaml and "
-                              "model.zip)")
+        if not (run / "config.yaml").is_file():
+            raise ConfigError(f"--resume {run}: not a run folder (needs config.yaml)")
         cfg = load_config(run / "config.yaml")
-        seed = cfg.seed if seed is None else seed
+        if seed is not None and seed != cfg.seed:
+            raise ConfigError(f"seed={seed}: a resumed run keeps the seed of its config.yaml "
+                              f"({cfg.seed})")
+        seed = cfg.seed
+        for folder in (run, run / "checkpoints", run / "eval", run / "best"):
+            if folder.is_dir():
+                remove_stale_temporaries(folder)
+        state = latest_state(run, bool(cfg.normalize))
+        if state is None:
+            _say(f"{run} holds no complete checkpoint yet (killed before the first one): "
+                 "training it from step 0")
+        else:
+            for note in state[3]:
+                _say(note)
     else:
-        cfg = load_config(config or DEFAULT_CONFIG)
+        cfg = (load_config(config or DEFAULT_CONFIG) if scenario is None
+               else with_scenario(config, scenario))
         seed = cfg.seed if seed is None else seed
         stamp = time.strftime("%Y%m%d-%H%M%S")
         run = Path(run_dir) if run_dir else Path("runs") / f"{cfg.env_id}-{stamp}-s{seed}"
-        if (run / "model.zip").exists():
+        if run.exists() and not run.is_dir():
+            raise ConfigError(f"--run-dir {run} is a file, not a folder")
+        if (run / "model.zip").exists() or list((run / "checkpoints").glob("ppo_*_steps.json")):
             raise ConfigError(f"run folder {run} already holds a model; use --resume {run}")
+        if (run / "config.yaml").exists():
+            raise ConfigError(f"run folder {run} already holds a started run (config.yaml, no "
+                              f"checkpoint yet); use --resume {run} to train it from step 0, "
+                              "or another --run-dir")
         run.mkdir(parents=True, exist_ok=True)
-        (run / "config.yaml").write_text(yaml.safe_dump(_resolved(cfg, seed), sort_keys=False))
+        atomic_write_text(run / "config.yaml",
+                          yaml.safe_dump(_resolved(cfg, seed, n_timesteps), sort_keys=False))
 
+    done = 0 if state is None else state[0]
+    steps = n_timesteps if n_timesteps is not None else cfg.n_timesteps - done
+    if steps <= 0:
+        raise ConfigError(f"run {run} already reached n_timesteps={cfg.n_timesteps} "
+                          f"({done} done); pass --n-timesteps N to train N more")
+    if resume is not None and n_timesteps is not None and done + steps != cfg.n_timesteps:
+        # the run's budget is now done + N: a kill and a plain --resume continue to it
+        atomic_write_text(run / "config.yaml", yaml.safe_dump(
+            _resolved(cfg, cfg.seed, done + steps), sort_keys=False))
+        _say(f"config.yaml: n_timesteps {cfg.n_timesteps} -> {done + steps} (--n-timesteps "
+             f"{steps} more from step {done})")
+    if state is not None or resume is not None:
+        dropped = cut_eval_history(run / "eval", done)
+        if dropped:
+            _say(f"dropped {dropped} evaluation(s) made after step {done} by the interrupted "
+                 "run (their model was not saved)")
+        note = reconcile_best(run, done, bool(cfg.normalize))
+        if note:
+            _say(note)
+    if "OMP_NUM_THREADS" not in os.environ:
+        # a 64-wide MLP gains nothing from a second torch thread: measured 50.9 s on one thread
+        # against 53.5 s on two for the default config, at half the CPU; OMP_NUM_THREADS rules
+        import torch
+
+        torch.set_num_threads(1)
     env = make_train_env(cfg, seed)
-    if resume is not None:
+    if state is not None:
+        done, model_path, norm_path, _ = state
         if isinstance(env, VecNormalize):
-            env = VecNormalize.load(str(run / "vecnormalize.pkl"), env.venv)
-        model = PPO.load(run / "model.zip", env=env, device="cpu", tensorboard_log=str(run / "tb"))
-        done = int(model.num_timesteps)
-        steps = n_timesteps if n_timesteps is not None else cfg.n_timesteps - done
-        if steps <= 0:
-            raise ConfigError(f"run {run} already reached n_timesteps={cfg.n_timesteps} "
-                              f"({done} done); pass --n-timesteps N to train N more")
+            assert norm_path is not None
+            try:
+                with norm_path.open("rb") as f:
+                    norm = pickle.load(f)
+            except Exception as e:  # a truncated pickle raises EOFError, UnpicklingError, …
+                env.close()
+                raise DamagedFileError(f"{norm_path} is damaged ({type(e).__name__}: {e})"
+                                       ) from None
+            norm.set_venv(env.venv)
+            env = norm
+        try:
+            model = PPO.load(model_path, env=env, device="cpu", tensorboard_log=str(run / "tb"))
+        except Exception as e:
+            env.close()
+            raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
+        _say(f"resuming {run} from {model_path.relative_to(run)} at {done} env steps")
     else:
-        ppo_kwargs = {**cfg.ppo_kwargs}
-        if "learning_rate" in ppo_kwargs:
-            ppo_kwargs["learning_rate"] = _schedule(ppo_kwargs["learning_rate"])
-        pk = dict(cfg.policy_kwargs)
-        if "activation_fn" in pk:
-            import torch.nn as nn
-
-            pk["activation_fn"] = getattr(nn, pk["activation_fn"].split(".")[1])
-        model = PPO(cfg.policy, env, policy_kwargs=pk, seed=seed, device="cpu",
-                    tensorboard_log=str(run / "tb"), verbose=verbose, **ppo_kwargs)
-        steps = n_timesteps if n_timesteps is not None else cfg.n_timesteps
+        model = _new_model(cfg, env, run, seed, verbose)
 
     calls = lambda every: max(1, every // cfg.n_envs)  # noqa: E731  (env steps → callback calls)
+    stop = StopRequest()
     callbacks = CallbackList([
+        stop,
+        NaNGuard(),
         TrackingMetrics(),
-        HeldOutEval(cfg, run, calls(cfg.eval_freq)),
-        CheckpointCallback(calls(cfg.checkpoint_freq), str(run / "checkpoints"), "ppo",
-                           save_vecnormalize=True),
+        HeldOutEval(cfg, run, calls(cfg.eval_freq), on_evaluation),
+        CompleteCheckpoints(run, calls(cfg.checkpoint_freq)),
     ])
     try:
-        model.learn(steps, callback=callbacks, progress_bar=progress,
-                    reset_num_timesteps=resume is None, tb_log_name="PPO")
-    finally:  # Ctrl-C or an error: keep what was learned
-        model.save(run / "model.zip")
-        if isinstance(env, VecNormalize):
-            env.save(str(run / "vecnormalize.pkl"))
+        with _signals_stop(stop):
+            try:
+                model.learn(steps, callback=callbacks, progress_bar=progress,
+                            reset_num_timesteps=state is None, tb_log_name="PPO")
+                # the NaN guard runs before each rollout: the last update is checked here
+                if not model_is_finite(model):
+                    raise NonFiniteModel(f"the last PPO update (after step "
+                                         f"{model.num_timesteps}) made a weight or a normaliser "
+                                         "statistic non-finite")
+            except NonFiniteModel as e:
+                last = latest_state(run, bool(cfg.normalize))
+                kept = (f"kept the last finite state, {last[1].relative_to(run)} at {last[0]} "
+                        "steps" if last else "no finite state was saved")
+                raise TrainingStopped(run, last[0] if last else 0,
+                                      f"NaN guard: {e}; {kept} (check learning_rate, "
+                                      "max_grad_norm, ent_coef and the rewards)") from None
+            finally:
+                if model_is_finite(model):  # Ctrl-C, SIGTERM or an error: keep what was learned
+                    save_final(model, run)
+    finally:
         env.close()
+    if stop.requested is not None:
+        name = signal.Signals(stop.requested).name
+        raise TrainingStopped(run, int(model.num_timesteps),
+                              f"stopped by {name} at {model.num_timesteps} env steps; saved "
+                              f"{run / 'model.zip'}; continue with --resume {run}",
+                              stop.requested)
     return run

@@ -22,8 +22,8 @@ what a controller computes from its measurements and its own commands, never a p
 ``errors_only`` leaves the env's observation out: the policy sees the error features alone, so it
 is a feedback law. Given X, X̂ or the phase, a policy trained on randomised plants learns the
 training distribution's average correction as a function of the phase and holds it on every
-plant, a periodic bias that its feedback then has to fight (0.076 mm on the nominal plant, where
-the feedforward alone is exact). Without the phase, though, the harmonic integrals cannot be
+plant, a periodic bias that its feedback then has to fight, even on the nominal plant where the
+feedforward alone is exact. Without the phase, though, the harmonic integrals cannot be
 turned back into a periodic correction; ``remodulate`` does that for the policy, appending per
 harmonic the resonant controller's output and its quadrature,
 
@@ -63,9 +63,17 @@ from gymnasium.vector.utils import batch_space
 
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
-from mpa_gym.task.config import check_action
+from mpa_gym.task.contract import OBS_COS as OCOS
+from mpa_gym.task.contract import OBS_KREF as OK
+from mpa_gym.task.contract import OBS_PE as OPE
+from mpa_gym.task.contract import OBS_PF as OPF
+from mpa_gym.task.contract import OBS_SIN as OSIN
+from mpa_gym.task.contract import OBS_V as OV
+from mpa_gym.task.contract import OBS_VREF as OVR
+from mpa_gym.task.contract import OBS_X as OX
+from mpa_gym.task.contract import OBS_XREF as OXR
+from mpa_gym.task.contract import check_action
 
-OX, OV, OXR, OVR, OSIN, OCOS, OPE, OPF, OK = range(9)  # observation columns (task.config)
 MAX_HARMONICS = 5
 
 
@@ -146,22 +154,24 @@ class FeatureSpec:
         return np.concatenate(cols, axis=1).astype(np.float32)
 
 
-ACTION_KWARGS = ("force_N", "stiffness_rel", "rate_penalty")
+@dataclass(frozen=True)
+class ActionSpec:
+    """How ``ForceStiffnessAction`` maps its actions (its kwargs; module docstring)."""
 
+    force_N: float = 20.0  # [N] ground-force correction ΔF at a_F = ±1
+    stiffness_rel: float = 0.3  # [-] stiffness correction Δk at a_k = ±1, as a share of k̂
+    rate_penalty: float = 0.0  # weight of |a_t − a_{t−1}|² taken off the training reward
 
-def check_action_kwargs(force_N: Any = 20.0, stiffness_rel: Any = 0.3, rate_penalty: Any = 0.0
-                        ) -> tuple[float, float, float]:
-    """Validated (force_N, stiffness_rel, rate_penalty); ``ValueError`` names the bad one and its
-    range."""
-    for name, value, lo, hi in (("force_N", force_N, None, 200.0),
-                                ("stiffness_rel", stiffness_rel, None, 1.0),
-                                ("rate_penalty", rate_penalty, 0.0, 100.0)):
-        ok = isinstance(value, int | float) and not isinstance(value, bool) and \
-            (lo <= value if lo is not None else 0 < value) and value <= hi
-        if not ok:
-            interval = f"[{lo:g}, {hi:g}]" if lo is not None else f"(0, {hi:g}]"
-            raise ValueError(f"{name}={value!r} must be a number in {interval}")
-    return float(force_N), float(stiffness_rel), float(rate_penalty)
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
+                             ("rate_penalty", 0.0, 100.0)):
+            value = getattr(self, name)
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and \
+                (lo <= value if lo is not None else 0 < value) and value <= hi
+            if not ok:
+                interval = f"[{lo:g}, {hi:g}]" if lo is not None else f"(0, {hi:g}]"
+                raise ValueError(f"{name}={value!r} must be a number in {interval}")
+            object.__setattr__(self, name, float(value))
 
 
 def harmonic_basis(obs: np.ndarray, harmonics: int) -> np.ndarray:
@@ -304,10 +314,10 @@ class _ForceStiffnessMap:
     _obs: np.ndarray | None
     _prev: np.ndarray
 
-    def _setup(self, env: Any, force_N: float, stiffness_rel: float, rate_penalty: float,
-               n: int) -> None:
-        self.force_N, self.stiffness_rel, self.rate_penalty = check_action_kwargs(
-            force_N, stiffness_rel, rate_penalty)
+    def _setup(self, env: Any, spec: ActionSpec, n: int) -> None:
+        self.action_spec = spec
+        self.force_N, self.stiffness_rel, self.rate_penalty = (
+            spec.force_N, spec.stiffness_rel, spec.rate_penalty)
         if not getattr(env.unwrapped, "residual", False):
             raise ValueError("ForceStiffnessAction needs MPALegResidual-v0 (residual actions and "
                              "the k̂ observation)")
@@ -352,12 +362,12 @@ class _ForceStiffnessMap:
 
 
 class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
-    """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs)."""
+    """Single residual env: actions (a_F, a_k) in force–stiffness coordinates (module docs).
+    kwargs: the fields of ``ActionSpec``."""
 
-    def __init__(self, env: gym.Env, force_N: float = 20.0, stiffness_rel: float = 0.3,
-                 rate_penalty: float = 0.0) -> None:
+    def __init__(self, env: gym.Env, **kwargs: Any) -> None:
         gym.Wrapper.__init__(self, env)
-        self._setup(env, force_N, stiffness_rel, rate_penalty, 1)
+        self._setup(env, ActionSpec(**kwargs), 1)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         a = np.clip(check_action(action)[None], -1.0, 1.0)
@@ -370,12 +380,12 @@ class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
 
 
 class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
-    """Native vector env: the action coordinates of ``ForceStiffnessAction``."""
+    """Native vector env: the action coordinates of ``ForceStiffnessAction``. kwargs: the
+    fields of ``ActionSpec``."""
 
-    def __init__(self, env: VectorEnv, force_N: float = 20.0, stiffness_rel: float = 0.3,
-                 rate_penalty: float = 0.0) -> None:
+    def __init__(self, env: VectorEnv, **kwargs: Any) -> None:
         VectorWrapper.__init__(self, env)
-        self._setup(env, force_N, stiffness_rel, rate_penalty, env.num_envs)
+        self._setup(env, ActionSpec(**kwargs), env.num_envs)
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                           dict[str, Any]]:

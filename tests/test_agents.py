@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import gymnasium as gym
@@ -23,6 +24,10 @@ from agents.wrappers import (
     force_stiffness_to_residual,
 )
 from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.task.contract import OBS_V as OV
+from mpa_gym.task.contract import OBS_VREF as OVR
+from mpa_gym.task.contract import OBS_X as OX
+from mpa_gym.task.contract import OBS_XREF as OXR
 
 SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
 LOADED = {"name": "loaded", "duration_s": 18.0, "plant": {"extra_mass_kg": 1.0}}
@@ -137,8 +142,10 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
             via, force_stiffness_to_residual(direct, raw.last[None], env.force_N,
                                              env.stiffness_rel, env.scale_bar)[0])
         obs, *_ = env.step(direct[0])
-    # the model saw the tracking-error features alone (the env's X, X̂, pressures… left out)
-    assert policy.features.errors_only and obs.shape == (2 + policy.features.n_integrals + 2,)
+    # the model saw the tracking-error features alone (the env's X, X̂, pressures… left out):
+    # errors, integrals, the resonant pair and the previous action
+    f = policy.features
+    assert f.errors_only and obs.shape == (2 + f.n_integrals + 2 + 2 * f.previous_action,)
 
 
 class _LastObservation(gym.Wrapper):
@@ -219,4 +226,130 @@ def test_report_files(tmp_path):
     assert row["pid"]["recovery_s"] is not None and row["pid"]["recovery_s"] != "never"
     md = paths["markdown"].read_text()
     assert "| a |" in md and "position RMSE [mm]" in md
+    # what each controller was tuned on, in both forms of the report
+    from agents.baselines import TUNED_ON
+
+    assert data["controllers"] == {"ff": TUNED_ON["ff"], "pid": TUNED_ON["pid"]}
+    assert f"| pid | {TUNED_ON['pid']} |" in md
     assert (tmp_path / "plots" / "a.png").stat().st_size > 10_000
+
+
+def _obs_with_error(e_x, e_v, n=1):
+    """Residual-env observations on the reference at phase 0, then moved by (e_x, e_v)."""
+    env = gym.make("MPALegResidual-v0")
+    obs = np.tile(env.reset(seed=0)[0], (n, 1)).astype(np.float64)
+    obs[:, OXR] = obs[:, OX] + e_x  # e = X̂ − X
+    obs[:, OVR] = obs[:, OV] + e_v
+    return obs
+
+
+def test_pid_derivative_is_low_pass_filtered():
+    # A step of the velocity error from 0 to 0.1 m/s: the D term follows the discrete
+    # first-order filter d_k = d_{k−1} + α (ė − d_{k−1}), α = dt / (tf + dt), i.e.
+    # Kd ė (1 − (1 − α)^k); with tf = 0 it is Kd ė at once.
+    from agents.baselines import PIDResidual
+
+    for tf in (0.0, 0.02):
+        pid = dataclasses.replace(make_baseline("pid"), kp_bar_per_m=0.0, ki_bar_per_m_s=0.0,
+                                  kd_bar_s_per_m=2.0, tf_s=tf)
+        assert isinstance(pid, PIDResidual)
+        _, st = pid.predict(_obs_with_error(0.0, 0.0), None, np.ones(1, bool))
+        alpha = 0.01 / (tf + 0.01)
+        for k in range(1, 6):
+            a, st = pid.predict(_obs_with_error(0.0, 0.1), st, np.zeros(1, bool))
+            want = 2.0 * 0.1 * (1.0 - (1.0 - alpha) ** k) / pid.cfg.residual_scale_bar
+            np.testing.assert_allclose(a[0], [want, -want], rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["pid", "mbfb"])
+def test_integrators_do_not_wind_up_while_the_output_saturates(name):
+    # A 5 cm error saturates either controller's output: the integral takes the first step
+    # (nothing was saturated before it) and then holds while the error pushes the same way;
+    # an error of the other sign integrates again at once.
+    ctrl = make_baseline(name)
+    _, st = ctrl.predict(_obs_with_error(0.05, 0.0), None, np.ones(1, bool))
+    first = st[0, 0]
+    assert first == pytest.approx(0.05 * 0.01) and st[0, 2] != 0.0
+    for _ in range(20):
+        _, st = ctrl.predict(_obs_with_error(0.05, 0.0), st, np.zeros(1, bool))
+    assert st[0, 0] == first
+    _, st = ctrl.predict(_obs_with_error(-0.001, 0.0), st, np.zeros(1, bool))
+    assert st[0, 0] == pytest.approx(first - 0.001 * 0.01)
+
+
+def test_tuning_runs_on_the_training_plants_and_says_so():
+    # Two trials on two plants (a smoke run of the budgeted tuning): the first trial is the
+    # current defaults, the best is no worse, and the result names the plants' source.
+    from agents.tune_baselines import score, training_plants, tune
+
+    r = tune("pid", n_trials=2, n_plants=2, episode_s=9.0)
+    assert r["mean_position_rmse_mm"] <= r["default_mean_position_rmse_mm"]
+    assert set(r["gains"]) == {"kp_bar_per_m", "ki_bar_per_m_s", "kd_bar_s_per_m", "tf_s"}
+    assert r["tuned_on"]["randomize"]["pressure_dead_time_s"] == [0.0, 0.03]
+    sc, plants = training_plants(n_plants=2, episode_s=9.0)
+    assert score("pid", r["gains"], sc, plants) == pytest.approx(r["mean_position_rmse_mm"])
+    with pytest.raises(ValueError, match="n_trials=0 must be a whole number >= 1"):
+        tune("pid", n_trials=0)
+
+
+def test_batched_evaluation_gives_the_one_at_a_time_numbers(tmp_path):
+    """All scenarios of a report in one batch (vector envs, one policy call per step) against
+    each episode alone in its own single env: the baselines bit for bit; a learned policy to
+    float32 rounding, because torch's matrix product over a batch of rows need not round the
+    last bit as it does for one row (ε_32 ≈ 6e-8; the closed loop is stable, so the metrics
+    stay within 1e-6 relative)."""
+    run = train(tiny_config(tmp_path), tmp_path / "run", progress=False)
+    noisy = {"position_noise_m": 2e-5, "velocity_noise_mps": 1e-3, "pressure_noise_bar": 0.005}
+    scenarios = [
+        {"name": "imp", "duration_s": 3.0, "disturbances": [
+            {"type": "impulse", "t_s": 1.0, "force_N": 20.0, "duration_s": 0.05}]},
+        {"name": "kmax_load", "duration_s": 3.0, "inputs": {"stiffness": "kmax"},
+         "plant": {"extra_mass_kg": 1.0}},
+        {"name": "noisy_lag", "duration_s": 2.0, "initial_state": {"x_m": 0.81, "v_mps": 0.0},
+         "plant": {"mass_kg": 4.1, "pressure_lag_s": 0.03, **noisy}},
+    ]
+    policies = ["ff", "pid", "mbfb", str(run)]
+    batched = evaluate(policies, scenarios)
+    alone = evaluate(policies, scenarios, batched=False)
+    for sc in ("imp", "kmax_load", "noisy_lag"):
+        for p in ("ff", "pid", "mbfb"):
+            assert batched["results"][sc][p] == alone["results"][sc][p], (sc, p)
+            a, b = batched["traces"][sc][p], alone["traces"][sc][p]
+            for f in ("t", "x", "k", "pressure_bar", "pressure_cmd_bar", "rewards"):
+                np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+        a, b = batched["results"][sc]["run"], alone["results"][sc]["run"]
+        assert a["terminated"] == b["terminated"]
+        for k in ("position_rmse_mm", "stiffness_rmse_pct", "return"):
+            np.testing.assert_allclose(a[k], b[k], rtol=1e-6)
+    assert len(batched["traces"]["noisy_lag"]["ff"].t) == 200  # its own 2 s episode
+
+
+def test_train_on_a_scenario_file_keeps_its_plants_in_the_run(tmp_path):
+    # `train --scenario FILE` (identify's --out) trains on that file's plant and randomize
+    # ranges instead of the config's, and the run's config.yaml holds the file's content, so
+    # the run folder alone says what it was trained on; a built-in name stays a name.
+    from agents.robustness import training_ranges
+    from mpa_gym.cli import main
+
+    ident = {"name": "identified", "duration_s": 3.0,
+             "plant": {"mass_kg": 4.34, "pressure_dead_time_s": 0.021, "slider_friction_N": 1.5},
+             "randomize": {"C1_Pa": [172000.0, 174000.0], "pressure_lag_s": [0.029, 0.031]}}
+    f = tmp_path / "identified.yaml"
+    f.write_text(yaml.safe_dump(ident))
+    cfg = tiny_config(tmp_path)
+    assert main(["train", "--config", str(cfg), "--scenario", str(f), "--run-dir",
+                 str(tmp_path / "run"), "--no-progress"]) == 0
+    saved = load_config(tmp_path / "run" / "config.yaml")
+    assert saved.env_kwargs["scenario"] == ident
+    ranges = training_ranges(str(tmp_path / "run"))
+    assert ranges["C1_Pa"] == (172000.0, 174000.0) and ranges["pressure_lag_s"] == (0.029, 0.031)
+    assert ranges["mass_kg"] == (4.34, 4.34) and ranges["pressure_dead_time_s"] == (0.021, 0.021)
+    drawn = {k for k, (lo, hi) in ranges.items() if lo != hi}
+    assert drawn == {"C1_Pa", "pressure_lag_s"}  # none of the config's own ranges
+    named = train(cfg, tmp_path / "run2", progress=False, n_timesteps=128, scenario="heldout_a")
+    assert load_config(named / "config.yaml").env_kwargs["scenario"] == "heldout_a"
+    # bad input: exit 2 and nothing trained
+    assert main(["train", "--config", str(cfg), "--scenario", str(tmp_path / "nope.yaml"),
+                 "--run-dir", str(tmp_path / "run3")]) == 2
+    assert not (tmp_path / "run3").exists()
+    assert main(["train", "--resume", str(tmp_path / "run"), "--scenario", "heldout_a"]) == 2

@@ -1,0 +1,565 @@
+"""Identify the plant from a rig log: ``mpa-gym identify --log LOG [--out FILE.yaml] [--json]``.
+
+The log of a rollout (best: ``mpa-gym rollout --policy excite``) holds, every control period,
+the pressure command, the measured pressures and the measured hip height. A log appended to by
+several rollouts holds several sessions, each starting with its header: the fit uses one, the
+newest by default (``session``), and its control rate from the header. The fit is split in
+two, each a ``scipy.optimize.least_squares`` problem:
+
+1. **Regulator** (lag τ, dead time d, slew limit r, shared by both MPAs): the measured
+   pressures against the commands through the regulator of ``RegulatorParams`` (first-order
+   lag, rate-limited at r) driven by the command delayed by d (exact solution, the held command
+   switching inside a period when d is not a whole number of periods). r shows only where a
+   step exceeds r τ; otherwise it is kept at 0 (unlimited) and the log's lower bound reported.
+2. **Mechanics** (total mass m, γ, C1, C2, and the fidelity effects: braid friction ratio μ_b,
+   slider Coulomb F_c and viscous c_s friction): the measured positions against Eq. (15) (with
+   the friction of ``mpa.force`` and ``dynamics.slider_friction``, through the packed constants
+   of ``fast.pack``) driven by the *measured* pressures (linear between samples), so the two
+   fits do not trade errors. c_s V and γ (G_e² + G_f²) V both damp the hip: their sum is well
+   determined, their split only through how G_e, G_f vary along the log (the covariance shows
+   it as larger, correlated uncertainties of γ and c_s).
+   Prediction error over segments: the log is cut into ``segment_s`` pieces, each simulated from
+   its own initial state (X0, V0), which are fitted too. Why segments rather than one simulation
+   of the whole log (single shooting): the leg is lightly damped (ζ ≈ 0.05), so over a long
+   horizon a small parameter error becomes a phase slip and the cost surface fills with local
+   minima; a segment shorter than the decay time keeps the cost close to quadratic in the
+   parameters, and the free initial states absorb the unknown velocity (the log has none) and
+   any slow drift. Each segment's states touch only its own residuals, so the Jacobian is sparse
+   and finite differences cost a handful of simulations.
+
+Uncertainties are the standard deviations of the Gauss–Newton covariance s² (JᵀJ)⁻¹ at the
+solution (the block of the parameters, the segment states marginalised), with s² the residual
+variance; the residuals are correlated in time, so these are lower bounds. The bladder thickness
+t is not identifiable apart from C1 and C2 (the model's rubber term is V_r(t)·(C1 …, C2 …)): it is
+kept at its nominal value and C1, C2 absorb it.
+
+Validation: the last ``holdout`` fraction of the log is left out of both fits; the identified
+model (regulator from the logged commands, then mechanics) is simulated over it from an initial
+state fitted to its first ``settle_s``, and the position RMSE over the rest is reported and
+plotted against the log.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from mpa_gym.analysis.scenario import Plant, Scenario, load_scenario
+from mpa_gym.model import fast
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+MECH = ("mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa")  # fitted plant keys, mechanics (scaled)
+# fitted plant keys, mechanics, the fidelity effects (0 for the paper's plant): (key, scale, upper
+# bound); their nominal value is 0, so they are scaled by a typical size instead
+FRICTION = (("braid_friction_ratio", 0.01, 0.5), ("slider_friction_N", 1.0, 100.0),
+            ("slider_viscous_Ns_per_m", 1.0, 100.0))
+REG = ("pressure_lag_s", "pressure_dead_time_s", "pressure_slew_bar_per_s")  # regulator keys
+MIN_RAMP_S = 0.05  # [s] slew-limited time in the fitted log below which the slew is not identified
+
+
+@dataclass(frozen=True)
+class LogData:
+    """One episode of a rollout log: command j sent at ``t_cmd[j]`` and held until
+    ``t_cmd[j + 1]``, the pressures [Pa] and position [m] measured at ``t_meas[j]``."""
+
+    dt: float  # [s] nominal control period
+    t_cmd: np.ndarray  # [s] (n + 1,)
+    t_meas: np.ndarray  # [s] (n,)
+    x: np.ndarray  # (n,)
+    p: np.ndarray  # (n, 2)
+    cmd: np.ndarray  # (n, 2)
+
+    def part(self, a: int, b: int) -> LogData:
+        """Samples a … b − 1."""
+        return LogData(self.dt, self.t_cmd[a:b + 1], self.t_meas[a:b], self.x[a:b],
+                       self.p[a:b], self.cmd[a:b])
+
+
+def _timing(rows: list[dict[str, Any]], dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(command times, measurement times) [s] of a log's steps: from the loop's measured
+    periods (``period_s``, start to start) where the log has them — a late step held its
+    predecessor's command longer — else the nominal ``dt``. A step's telemetry is read at its
+    deadline, a period after its start, or at the next start if that came sooner."""
+    n = len(rows)
+    period = np.array([r.get("period_s", math.nan) for r in rows], dtype=float)[1:]
+    period = np.where(np.isfinite(period) & (period > 0), period, dt)
+    t_cmd = np.concatenate([[0.0], np.cumsum(period), [0.0]])
+    t_cmd[n] = t_cmd[n - 1] + dt
+    return t_cmd, np.minimum(t_cmd[:-1] + dt, t_cmd[1:])
+
+
+@dataclass(frozen=True)
+class Session:
+    """One rollout session of a log: its ``{"event": "session"}`` header (None for records
+    before any header, e.g. a log written by another tool) and its step records."""
+
+    header: dict[str, Any] | None
+    steps: list[dict[str, Any]]
+
+
+def read_sessions(path: str | Path) -> list[Session]:
+    """The sessions of a rollout log, oldest first. ``agents.rollout`` appends to its log and
+    starts each session with a header, and episodes are numbered from 0 in each: the header,
+    not the episode number, is where one session's steps end and the next one's begin."""
+    from agents.rollout import read_log
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--log {path}: no such file")
+    out: list[Session] = []
+    header: dict[str, Any] | None = None
+    steps: list[dict[str, Any]] = []
+    started = False  # records (of any kind) before the first header make a session too
+    for r in read_log(path):
+        if r.get("event") == "session":
+            if started:
+                out.append(Session(header, steps))
+            header, steps, started = r, [], True
+            continue
+        started = True
+        if "t_s" in r and "x_m" in r:
+            steps.append(r)
+    if started:
+        out.append(Session(header, steps))
+    return out
+
+
+def pick_session(sessions: list[Session], session: int | None, path: str | Path
+                 ) -> tuple[int, Session]:
+    """(index, session): ``session`` counted from 0 (negative: from the end); None: the newest
+    session with step records."""
+    n = len(sessions)
+    if session is None:
+        with_steps = [i for i, s in enumerate(sessions) if s.steps]
+        if not with_steps:
+            raise ValueError(f"--log {path}: no step records (a rollout log has one per control "
+                             "period, with t_s, x_m, pressure_bar and pressure_cmd_bar)")
+        return with_steps[-1], sessions[with_steps[-1]]
+    if isinstance(session, bool) or not isinstance(session, int) or not -n <= session < n:
+        raise ValueError(f"--session={session!r}: the log {path} holds {n} session(s); give a "
+                         f"whole number in [{-n}, {n - 1}] (negative: counted from the newest)")
+    i = session % n
+    if not sessions[i].steps:
+        raise ValueError(f"--session={session}: session {i} of {path} has no step records "
+                         "(stopped before its first episode?)")
+    return i, sessions[i]
+
+
+def episodes_of(s: Session, path: str | Path) -> list[LogData]:
+    """The episodes of one session; the control period is the header's ``control_hz`` (else
+    the median step of ``t_s``)."""
+    rate = (s.header or {}).get("control_hz")
+    out = []
+    for ep in sorted({r.get("episode", 0) for r in s.steps}):
+        er = [r for r in s.steps if r.get("episode", 0) == ep]
+        t = np.array([r["t_s"] for r in er])
+        if t.size < 3:
+            continue
+        dt = 1.0 / float(rate) if rate else float(np.median(np.diff(t)))
+        out.append(LogData(dt, *_timing(er, dt), np.array([r["x_m"] for r in er], dtype=float),
+                           np.array([r["pressure_bar"] for r in er], dtype=float) * BAR,
+                           np.array([r["pressure_cmd_bar"] for r in er], dtype=float) * BAR))
+    if not out:
+        raise ValueError(f"--log {path}: no episode with 3 or more steps")
+    return out
+
+
+def load_log(path: str | Path, session: int | None = None) -> list[LogData]:
+    """The episodes of one session of a rollout log (``agents.rollout.read_log`` records with
+    ``t_s``): ``session`` as in ``pick_session`` (default the newest with step records)."""
+    return episodes_of(pick_session(read_sessions(path), session, path)[1], path)
+
+
+# ----------------------------------------------------------------------------- regulator
+@numba.njit(**JIT)
+def _ramp_time(P, u, h, lag, slew):
+    """[s] of the next ``h`` that the regulator spends slew-limited from P' = P under u."""
+    if slew <= 0.0:
+        return 0.0
+    return min(max((abs(u - P) - slew * lag) / slew, 0.0), h)
+
+
+@numba.njit(**JIT)
+def simulate_pressure(cmd, t_cmd, t_meas, p_start, lag, dead, slew=0.0, ramp=None):
+    """Measured-pressure model: the regulator of ``RegulatorParams`` (first-order lag ``lag``
+    with the rate limit ``slew`` [Pa/s], 0: none) driven by the command delayed by ``dead``;
+    command j is held from ``t_cmd[j]`` to ``t_cmd[j + 1]``. Exact between switches
+    (``fast.regulator_pressure``). ``p_start`` (2,) is the pressure (and the command held)
+    before the first command. Returns (n, 2) pressures at the measurement times ``t_meas``;
+    ``ramp`` (1,), if given, receives the seconds spent slew-limited (both MPAs)."""
+    n = cmd.shape[0]
+    out = np.empty((n, 2))
+    ramped = 0.0
+    for m in range(2):
+        P, u, t, k = p_start[m], p_start[m], t_cmd[0], 0
+        for j in range(n):
+            target = t_meas[j]
+            while k < n and t_cmd[k] + dead < target:  # the delayed command switches
+                w = t_cmd[k] + dead
+                if w > t:
+                    ramped += _ramp_time(P, u, w - t, lag, slew)
+                    P = fast.regulator_pressure(P, u, w - t, lag, slew)
+                    t = w
+                u = cmd[k, m]
+                k += 1
+            if target > t:
+                ramped += _ramp_time(P, u, target - t, lag, slew)
+                P = fast.regulator_pressure(P, u, target - t, lag, slew)
+                t = target
+            out[j, m] = P
+    if ramp is not None:
+        ramp[0] = ramped
+    return out
+
+
+def _slew_Pa(inv_slew: float) -> float:
+    """[Pa/s] the slew of its inverse [s/bar] (0: unlimited)."""
+    return BAR / inv_slew if inv_slew > 0.0 else 0.0
+
+
+def fit_regulator(logs: list[LogData]) -> tuple[dict[str, float], dict[str, float | None],
+                                                  float, dict[str, list[float | None]],
+                                                  list[str]]:
+    """(lag [s], dead time [s], slew [bar/s]), their standard deviations (None: not
+    identified, kept fixed), the pressure RMSE [bar], the bounds [low, high or None] the log puts
+    on a parameter it does not identify, and notes.
+
+    The slew limit r is fitted as its inverse ρ = 1/r [s/bar], so that "unlimited" (ρ = 0) is an
+    ordinary point of a smooth cost. It shows in the log only where a command step exceeds r τ
+    (the ramp phase of ``fast.regulator_pressure``); where the fitted model spends less than
+    ``MIN_RAMP_S`` slew-limited the log says only that r ≥ (largest step)/τ, and the slew is
+    reported as fixed at 0 (unlimited)."""
+    def sim(theta, d, ramp=None):
+        return simulate_pressure(d.cmd, d.t_cmd, d.t_meas, d.p[0], theta[0], theta[1],
+                                 _slew_Pa(theta[2]), ramp)
+
+    def residuals(theta):
+        return np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
+
+    # coarse grid first: the cost is piecewise smooth in the dead time (a kink per period)
+    grid = [(lag, dead, rho) for lag in (0.0, 0.01, 0.02, 0.04, 0.08, 0.16)
+            for dead in np.arange(0.0, 0.101, 0.005) for rho in (0.0, 0.02, 0.05, 0.2)]
+    best = min(grid, key=lambda th: float(np.sum(residuals(np.array(th)) ** 2)))
+    sol = least_squares(residuals, np.array(best, dtype=float), bounds=([0, 0, 0], [1, 1, 10]),
+                        diff_step=1e-3, x_scale=[0.01, 0.01, 0.01])
+    sd = _std(sol)
+    ramp = np.zeros(1)
+    ramped = 0.0
+    for d in logs:
+        sim(sol.x, d, ramp)
+        ramped += ramp[0]
+    lag, dead, rho = (float(v) for v in sol.x)
+    est = {"pressure_lag_s": lag, "pressure_dead_time_s": dead, "pressure_slew_bar_per_s": 0.0}
+    unc: dict[str, float | None] = {"pressure_lag_s": float(sd[0]),
+                                    "pressure_dead_time_s": float(sd[1]),
+                                    "pressure_slew_bar_per_s": None}
+    notes, bounds = [], {}
+    if ramped >= MIN_RAMP_S and rho > 0.0:
+        est["pressure_slew_bar_per_s"] = 1.0 / rho
+        unc["pressure_slew_bar_per_s"] = float(sd[2]) / rho**2  # delta method, r = 1/ρ
+    else:
+        # no ramp: every step |e| ≤ r τ, so r ≥ max |e| / τ
+        step = max(float(np.max(np.abs(np.diff(d.cmd, axis=0)))) for d in logs) / BAR
+        bound = f"≥ {step / lag:.3g} bar/s" if lag > 0 else "not bounded"
+        if lag > 0:
+            bounds["pressure_slew_bar_per_s"] = [step / lag, None]
+        notes.append(f"pressure_slew_bar_per_s is kept at 0 (unlimited): no command step of the "
+                     f"log reached the slew limit (largest step {step:.3g} bar; the log only "
+                     f"says r {bound}); excite with larger steps to identify it")
+        est["pressure_lag_s"], est["pressure_dead_time_s"] = lag, dead
+    return est, unc, float(np.sqrt(np.mean(sol.fun ** 2))), bounds, notes
+
+
+# ----------------------------------------------------------------------------- mechanics
+@numba.njit(**JIT)
+def simulate_segments(states, starts, length, t, p, consts, substeps, out):
+    """Eq. (15) over each segment from its own initial state (X0, V0) = ``states[s]`` at the
+    sample times ``t``, the pressures linear between the measured samples; writes the simulated
+    X at the segment's samples into ``out`` (the segment's first sample is X0 itself)."""
+    for s in range(starts.shape[0]):
+        i0 = starts[s]
+        X, V = states[s, 0], states[s, 1]
+        out[i0] = X
+        for j in range(i0, min(i0 + length, t.shape[0]) - 1):
+            h = (t[j + 1] - t[j]) / substeps
+            for k in range(substeps):
+                a0 = k / substeps
+                am, a1 = a0 + 0.5 / substeps, a0 + 1.0 / substeps
+                pe0 = p[j, 0] + a0 * (p[j + 1, 0] - p[j, 0])
+                pf0 = p[j, 1] + a0 * (p[j + 1, 1] - p[j, 1])
+                pem = p[j, 0] + am * (p[j + 1, 0] - p[j, 0])
+                pfm = p[j, 1] + am * (p[j + 1, 1] - p[j, 1])
+                pe1 = p[j, 0] + a1 * (p[j + 1, 0] - p[j, 0])
+                pf1 = p[j, 1] + a1 * (p[j + 1, 1] - p[j, 1])
+                X, V = fast._rk4(X, V, pe0, pf0, pem, pfm, pe1, pf1, 0.0, h, consts)
+            out[j + 1] = X
+
+
+def plant_of(values: dict[str, float]) -> Plant:
+    """The scenario ``Plant`` of identified values (plant keys)."""
+    return Plant(**values)
+
+
+def consts_of(values: dict[str, float], params: Params = DEFAULT_PARAMS) -> np.ndarray:
+    """The compiled model's constants for identified plant values."""
+    return fast.pack(Scenario("fit").plant_params(params, plant_of(values)))
+
+
+def _segments(n: int, length: int) -> np.ndarray:
+    return np.arange(0, max(n - 2, 1), length, dtype=np.int64)
+
+
+def _initial_states(d: LogData, starts: np.ndarray) -> np.ndarray:
+    """(X0, V0) guesses: the measured X and a central difference of it."""
+    v = np.gradient(d.x, d.t_meas)
+    return np.stack([d.x[starts], v[starts]], axis=1)
+
+
+def fit_mechanics(logs: list[LogData], nominal: dict[str, float], segment_s: float,
+                  substeps: int = 2, params: Params = DEFAULT_PARAMS
+                  ) -> tuple[dict[str, float], dict[str, float], float]:
+    """Fitted (m, γ, C1, C2, braid friction μ_b, slider friction F_c and c_s), their standard
+    deviations, and the fit's position RMSE [m]. The friction terms reach the kernel through
+    the packed constants (``fast.pack``: mu_b, F_c, c_s) like the others."""
+    keys = MECH + tuple(k for k, _, _ in FRICTION)
+    npar = len(keys)
+    scale = np.array([nominal[k] for k in MECH] + [s for _, s, _ in FRICTION])
+    parts = []  # (log, segment starts, segment length)
+    for d in logs:
+        length = max(3, round(segment_s / d.dt))
+        parts.append((d, _segments(d.x.size, length), length))
+    n_states = 2 * sum(s.size for _, s, _ in parts)
+    n_res = sum(d.x.size for d, _, _ in parts)
+    bufs = [np.empty(d.x.size) for d, _, _ in parts]
+
+    def unpack(z):
+        return dict(zip(keys, (float(v) for v in z[:npar] * scale), strict=True))
+
+    def residuals(z):
+        c = consts_of(unpack(z), params)
+        out, k = [], npar
+        for (d, starts, length), buf in zip(parts, bufs, strict=True):
+            st = z[k:k + 2 * starts.size].reshape(-1, 2)
+            k += 2 * starts.size
+            simulate_segments(st, starts, length, d.t_meas, d.p, c, substeps, buf)
+            out.append(buf - d.x)
+        r = np.concatenate(out)
+        return np.where(np.isfinite(r), r, 1.0)  # a diverged segment: a large, finite cost
+
+    # the friction terms start just inside their lower bound 0 (the paper's plant)
+    z0 = np.concatenate([np.ones(len(MECH)), np.full(len(FRICTION), 0.1)]
+                        + [_initial_states(d, s).ravel() for d, s, _ in parts])
+    sparsity = lil_matrix((n_res, npar + n_states), dtype=int)
+    sparsity[:, :npar] = 1
+    row, col = 0, npar
+    for d, starts, length in parts:
+        for i0 in starts:
+            stop = min(i0 + length, d.x.size)
+            sparsity[row + i0:row + stop, col:col + 2] = 1
+            col += 2
+        row += d.x.size
+    lo = np.concatenate([[0.2, 0.0, 0.2, 0.0], np.zeros(len(FRICTION)),
+                         np.full(n_states, -np.inf)])
+    hi = np.concatenate([[5.0, 20.0, 5.0, 50.0], [h / s for _, s, h in FRICTION],
+                         np.full(n_states, np.inf)])
+    x_scale = np.concatenate([np.full(npar, 0.1), np.tile([1e-3, 1e-2], n_states // 2)])
+    sol = least_squares(residuals, z0, bounds=(lo, hi), jac_sparsity=sparsity, x_scale=x_scale,
+                        method="trf", xtol=1e-10, ftol=1e-10, max_nfev=200)
+    sd = _std(sol)[:npar] * scale
+    est = unpack(sol.x)
+    return est, dict(zip(keys, (float(v) for v in sd), strict=True)), \
+        float(np.sqrt(np.mean(sol.fun ** 2)))
+
+
+def _std(sol: Any) -> np.ndarray:
+    """Standard deviations from the Gauss–Newton covariance s² (JᵀJ)⁻¹ (module docstring)."""
+    J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    dof = max(1, J.shape[0] - J.shape[1])
+    s2 = 2.0 * sol.cost / dof
+    cov = np.linalg.pinv(J.T @ J) * s2
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+
+
+# ----------------------------------------------------------------------------- validation
+def simulate_full(d: LogData, values: dict[str, float], x0: float, v0: float, substeps: int = 2,
+                  params: Params = DEFAULT_PARAMS) -> tuple[np.ndarray, np.ndarray]:
+    """The identified model over a log stretch from the logged commands: (X, pressures)."""
+    p = simulate_pressure(d.cmd, d.t_cmd, d.t_meas, d.p[0], values["pressure_lag_s"],
+                          values["pressure_dead_time_s"],
+                          values.get("pressure_slew_bar_per_s", 0.0) * BAR)
+    x = np.empty(d.x.size)
+    simulate_segments(np.array([[x0, v0]]), np.zeros(1, dtype=np.int64), d.x.size, d.t_meas, p,
+                      consts_of(values, params), substeps, x)
+    return x, p
+
+
+def validate(d: LogData, values: dict[str, float], settle_s: float,
+             params: Params = DEFAULT_PARAMS) -> tuple[float, np.ndarray, np.ndarray, int]:
+    """(position RMSE after the first ``settle_s``, simulated X, simulated pressures, index
+    where the RMSE window starts) of the identified model over the held-out stretch ``d``."""
+    k = max(3, round(settle_s / d.dt))
+    guess = _initial_states(d, np.zeros(1, dtype=np.int64))[0]
+
+    def res(s):
+        return (simulate_full(d, values, s[0], s[1], params=params)[0] - d.x)[:k]
+
+    s0 = least_squares(res, guess, x_scale=[1e-3, 1e-2]).x
+    x, p = simulate_full(d, values, s0[0], s0[1], params=params)
+    return float(np.sqrt(np.mean((x - d.x)[k:] ** 2))), x, p, k
+
+
+def _split(d: LogData, frac: float) -> tuple[LogData, LogData]:
+    cut = round(d.x.size * (1.0 - frac))
+    return d.part(0, cut), d.part(cut, d.x.size)
+
+
+def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "nominal",
+             plot: str | Path | None = None, holdout: float = 0.2, segment_s: float = 0.5,
+             settle_s: float = 0.3, sigmas: float = 2.0,
+             params: Params = DEFAULT_PARAMS, session: int | None = None) -> dict[str, Any]:
+    """Fit the plant to a rollout log (module docstring); returns the report of
+    ``mpa-gym identify --json``. ``out``: write a scenario YAML (``scenario``'s reference and
+    inputs, the estimate as its plant, ``randomize`` ± ``sigmas`` standard deviations).
+    ``session``: which session of the log to fit (index, negative from the end; default the
+    newest with step records): a log appended to by several rollouts holds several."""
+    check_range("--holdout", holdout, 0.05, 0.5)
+    check_range("segment_s", segment_s, 0.05, 10.0, unit="s")
+    sessions = read_sessions(log)
+    index, chosen = pick_session(sessions, session, log)
+    logs = episodes_of(chosen, log)
+    longest = max(range(len(logs)), key=lambda i: logs[i].x.size)
+    fit_logs = list(logs)
+    fit_logs[longest], held = _split(logs[longest], holdout)
+    if held.x.size * held.dt < 2 * settle_s or fit_logs[longest].x.size * held.dt < 2:
+        raise ValueError(f"--log {log}: {logs[longest].x.size * held.dt:.2f} s of steps is too "
+                         "short to fit and validate; log at least 10 s (mpa-gym rollout --policy "
+                         "excite --episode-s 30)")
+    base = load_scenario(scenario)
+    nom_p = base.plant_params(params)
+    nominal = {"mass_kg": nom_p.leg.m, "gamma_Ns_per_m": nom_p.mpa.gamma, "C1_Pa": nom_p.mpa.C1,
+               "C2_Pa": max(nom_p.mpa.C2, 100.0)}
+    reg, reg_sd, p_rmse, bounds, reg_notes = fit_regulator(fit_logs)
+    mech, mech_sd, fit_rmse = fit_mechanics(fit_logs, nominal, segment_s, params=params)
+    values = {**mech, **reg}
+    unc: dict[str, float | None] = {**mech_sd, **reg_sd, "thickness_m": None}
+    rmse, x_sim, p_sim, k = validate(held, values, settle_s, params)
+    plant = {"extra_mass_kg": 0.0, **{k_: float(v) for k_, v in values.items()},
+             "thickness_m": float(nom_p.mpa.thickness)}
+    report: dict[str, Any] = {
+        "plant": plant, "uncertainty": unc, "validation_rmse_m": rmse, "bounds": bounds,
+        "scenario_yaml": None, "fit_rmse_m": fit_rmse, "pressure_fit_rmse_bar": p_rmse,
+        "holdout_s": held.x.size * held.dt,
+        "session": {"index": index, "sessions": len(sessions),
+                    **{k: (chosen.header or {}).get(k) for k in ("started_utc", "policy",
+                                                                 "control_hz")}},
+        "notes": ["thickness_m is kept nominal: only V_r(t)·C1 and V_r(t)·C2 are identifiable",
+                  "uncertainties are 1 σ of the Gauss-Newton covariance (lower bounds: the "
+                  "residuals are correlated in time)", *reg_notes],
+    }
+    if len(sessions) > 1:
+        report["notes"].insert(0, f"the log holds {len(sessions)} sessions; fitted session "
+                               f"{index} ({_describe(chosen)}), the others left out")
+    if plot is None:
+        plot = Path(log).with_suffix(".identify.png")
+    report["plot"] = str(_plot(held, x_sim, p_sim, k, rmse, Path(plot)))
+    if out is not None:
+        report["scenario_yaml"] = str(write_scenario(out, base, plant, unc, sigmas))
+    return report
+
+
+def _describe(s: Session) -> str:
+    h = s.header
+    if h is None:
+        return f"{len(s.steps)} steps before the first session header"
+    return (f"policy {h.get('policy', '?')}, started {h.get('started_utc', '?')}, "
+            f"{len(s.steps)} steps")
+
+
+def write_scenario(out: str | Path, base: Scenario, plant: dict[str, float],
+                   unc: dict[str, float | None], sigmas: float) -> Path:
+    """A scenario YAML: ``base``'s reference, inputs and duration, the estimate as the plant,
+    ``randomize`` spanning ± ``sigmas`` standard deviations (inside each field's range)."""
+    import yaml
+
+    from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE
+
+    d = base.to_dict()
+    d["name"] = Path(out).stem
+    d["description"] = "identified from a rig log (mpa-gym identify)"
+    d["plant"] = {**{k: v for k, v in d.get("plant", {}).items()
+                     if k not in plant and k not in ("mass_kg",)}, **plant}
+    rnd = {}
+    for key, sd in unc.items():
+        if sd is None or key not in RANDOMIZABLE or not math.isfinite(sd):
+            continue
+        lo_ok, hi_ok, low_open, _ = PLANT_RANGES[key]
+        v = plant[key]
+        lo = max(v - sigmas * sd, lo_ok + (1e-9 * max(abs(v), 1.0) if low_open else 0.0))
+        hi = min(v + sigmas * sd, hi_ok)
+        rnd[key] = [float(lo), float(hi)]
+    d["randomize"] = rnd
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(d, sort_keys=False))
+    load_scenario(path)  # it must load as written
+    return path
+
+
+def _plot(held: LogData, x_sim: np.ndarray, p_sim: np.ndarray, k: int, rmse: float,
+          path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = held.t_meas - held.t_cmd[0]
+    fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    ax[0].plot(t, held.x * 1e3, label="logged X", lw=1.2)
+    ax[0].plot(t, x_sim * 1e3, "--", label="identified model", lw=1.2)
+    ax[0].axvspan(0, t[k], color="0.9", label="initial-state fit")
+    ax[0].set_ylabel("X [mm]")
+    ax[0].set_title(f"held-out segment: position RMSE {rmse * 1e3:.3f} mm")
+    ax[0].legend(loc="upper right")
+    for m, name in enumerate(("P'_e", "P'_f")):
+        ax[1].plot(t, held.p[:, m] / BAR, lw=1.0, label=f"logged {name}")
+        ax[1].plot(t, p_sim[:, m] / BAR, "--", lw=1.0, label=f"model {name}")
+    ax[1].set_ylabel("pressure [bar]")
+    ax[1].set_xlabel("t [s] (from the start of the held-out segment)")
+    ax[1].legend(loc="upper right", ncol=2)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def show(o: dict[str, Any]) -> str:
+    lines = ["identified plant (± 1 σ):"]
+    for k, v in o["plant"].items():
+        sd = o["uncertainty"].get(k)
+        fixed = ""
+        if sd is None and k in o["uncertainty"]:
+            lo, hi = o.get("bounds", {}).get(k, (None, None))
+            fixed = "  (fixed" + (f"; the log says ≥ {lo:.3g}" if lo is not None else "") + \
+                (f", ≤ {hi:.3g}" if hi is not None else "") + ")"
+        lines.append(f"  {k:<22} {v:12.6g}" + (f"  ± {sd:.3g}" if sd is not None else fixed))
+    lines.append(f"fit: position RMSE {o['fit_rmse_m'] * 1e3:.3f} mm, pressure RMSE "
+                 f"{o['pressure_fit_rmse_bar'] * 1e3:.2f} mbar")
+    lines.append(f"validation on the held-out {o['holdout_s']:.1f} s: position RMSE "
+                 f"{o['validation_rmse_m'] * 1e3:.3f} mm (plot: {o['plot']})")
+    if o["scenario_yaml"]:
+        lines.append(f"scenario: {o['scenario_yaml']}")
+    lines += [f"note: {n}" for n in o["notes"]]
+    return "\n".join(lines)
+
+
+__all__ = ["LogData", "Session", "identify", "load_log", "read_sessions", "simulate_pressure",
+           "simulate_segments"]

@@ -1,0 +1,357 @@
+"""Robustness sweep: every controller over grids of real-rig plant effects, and three levels of
+combined effects in the style of realworldrl_suite (Dulac-Arnold et al., 2020: easy / medium /
+hard perturbation specs).
+
+Each grid runs as one batch through the native vector env: leg i is the grid's cell i, with its
+own plant set by ``reset(options={"plant": [dict per leg]})``, so a 5 × 5 grid costs one episode
+of a 25-leg batch. Per cell and controller, over the last three reference periods:
+
+- ``position_rmse_mm``: RMSE of X − X̂;
+- ``aperiodic_rmse_mm``: RMSE of what is left of X − X̂ after removing its average over the
+  three periods (its periodic part). A stable closed loop settles onto a motion with the
+  reference's period (a sag under a load is periodic and leaves nothing); a limit cycle at
+  another frequency or a growing oscillation does not;
+- ``unstable``: ``aperiodic_rmse_mm`` > ``UNSTABLE_APERIODIC_MM`` (1 mm, 5 % of the reference's
+  20 mm amplitude) or the episode terminated (the leg left its bounds or the model's domain);
+- ``terminated``.
+
+A learned controller's cells are marked ``held_out`` where a value lies outside what its
+training scenario draws (its ``randomize`` range, or its fixed plant value).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from agents.baselines import Policy
+from agents.config import EVAL_SEED
+from agents.evaluate import eval_task
+from agents.policies import load_policy
+from mpa_gym.analysis.scenario import Impulse, Plant, Scenario, load_scenario
+
+UNSTABLE_APERIODIC_MM = 1.0
+METRIC_PERIODS = 3
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A two-field grid of plants on top of ``base`` (per-leg plant fields) and ``rig``
+    (rig-wide plant fields, shared by every cell)."""
+
+    name: str
+    row_field: str
+    row_values: tuple[float, ...]
+    col_field: str
+    col_values: tuple[float, ...]
+    base: dict[str, float] = field(default_factory=dict)
+    rig: dict[str, float] = field(default_factory=dict)
+
+    def cells(self) -> list[dict[str, float]]:
+        """Per-leg plant dicts, row-major."""
+        return [{**self.base, self.row_field: r, self.col_field: c}
+                for r in self.row_values for c in self.col_values]
+
+
+GRIDS = (
+    # the issue's first plant: a 30 ms regulator with a 0.02 bar quantum; dead time up to 40 ms
+    # and loads up to 2 kg (training draws at most 1.2 kg)
+    Grid("dead_time_x_mass", "pressure_dead_time_s", (0.0, 0.01, 0.02, 0.03, 0.04),
+         "extra_mass_kg", (0.0, 0.5, 1.0, 1.6, 2.0), base={"pressure_lag_s": 0.03},
+         rig={"pressure_quantum_bar": 0.02}),
+    # the issue's third plant: braid-friction hysteresis and slider friction behind a 20 ms lag
+    Grid("hysteresis_x_slider_friction", "braid_friction_ratio", (0.0, 0.01, 0.03, 0.05),
+         "slider_friction_N", (0.0, 0.5, 1.5, 3.0), base={"pressure_lag_s": 0.02}),
+)
+
+# Combined effects at three levels (each a plant of its own), with a 30 N × 50 ms kick at 10 s.
+LEVELS: dict[str, dict[str, float]] = {
+    "easy": {"pressure_dead_time_s": 0.01, "pressure_lag_s": 0.02, "pressure_slew_bar_per_s": 20.0,
+             "braid_friction_ratio": 0.01, "slider_friction_N": 0.5,
+             "slider_viscous_Ns_per_m": 1.0, "extra_mass_kg": 0.3},
+    "medium": {"pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03,
+               "pressure_slew_bar_per_s": 10.0, "braid_friction_ratio": 0.03,
+               "slider_friction_N": 1.5, "slider_viscous_Ns_per_m": 3.0, "extra_mass_kg": 0.8},
+    "hard": {"pressure_dead_time_s": 0.03, "pressure_lag_s": 0.05, "pressure_slew_bar_per_s": 5.0,
+             "braid_friction_ratio": 0.05, "slider_friction_N": 3.0,
+             "slider_viscous_Ns_per_m": 5.0, "extra_mass_kg": 1.6},
+}
+LEVEL_RIG = {"pressure_quantum_bar": 0.02}
+LEVEL_KICK = Impulse(t_s=10.0, force_N=30.0, duration_s=0.05)
+
+
+def _scenario(base: Scenario, name: str, rig: dict[str, float],
+              disturbances: tuple[Impulse, ...] = ()) -> Scenario:
+    return dataclasses.replace(base, name=name, plant=Plant(**rig), disturbances=disturbances,
+                               randomize=dataclasses.replace(base.randomize, ranges=()))
+
+
+def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], seed: int
+              ) -> dict[str, np.ndarray]:
+    """One episode of controller ``spec`` (a name, a run folder, or a policy object for
+    ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
+    each step until the episode ends (NaN after a termination), and whether it terminated."""
+    return run_batches([spec], sc, plants, seed)[0]
+
+
+def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
+                seed: int) -> list[dict[str, np.ndarray]]:
+    """:func:`run_batch` for several controllers at once, each on every plant. Controllers
+    that run in the same env (id and task settings) share one vector env, a block of legs
+    each, so a step of the sweep is one engine call per env rather than per controller; leg j
+    of every block is reset with seed ``seed + j``, as the single batch seeds it."""
+    loaded = []
+    for spec in specs:
+        if isinstance(spec, str):
+            policy, env_id, run_cfg = load_policy(spec, {"scenario": sc})
+        else:
+            policy, env_id, run_cfg = spec, "MPALegResidual-v0", None
+        loaded.append((policy, env_id, eval_task(run_cfg)))
+    groups: dict[tuple[str, str], list[int]] = {}  # (env id, task) -> controllers
+    for c, (_, env_id, task) in enumerate(loaded):
+        groups.setdefault((env_id, json.dumps(task, sort_keys=True, default=str)), []).append(c)
+    n = len(plants)
+    out: list[dict[str, np.ndarray]] = [{} for _ in specs]
+    for (env_id, _), members in groups.items():
+        m = len(members)
+        venv = gym.make_vec(env_id, num_envs=m * n, vectorization_mode="vector_entry_point",
+                            scenario=sc, task=loaded[members[0]][2])
+        try:
+            obs, _ = venv.reset(seed=[seed + j for _ in members for j in range(n)],
+                                options={"plant": plants * m})
+            steps = venv.unwrapped.engine.plan.n_steps
+            dt = venv.unwrapped.cfg.dt_s
+            x = np.full((steps, m * n), np.nan)
+            xr = np.full((steps, m * n), np.nan)
+            dead = np.zeros(m * n, dtype=bool)
+            states: list[Any] = [None] * m
+            start = np.ones(n, dtype=bool)
+            action = np.zeros((m * n, *venv.single_action_space.shape))
+            rows_run = steps
+            for k in range(steps):
+                for b, c in enumerate(members):
+                    a, states[b] = loaded[c][0].predict(obs[b * n:(b + 1) * n], states[b], start,
+                                                        deterministic=True)
+                    action[b * n:(b + 1) * n] = a
+                start = np.zeros(n, dtype=bool)
+                obs, _, term, trunc, info = venv.step(action)
+                xk, xrk = info["x_m"].copy(), info["x_ref_m"].copy()
+                if "final_info" in info:  # same-step autoreset: the finished step is there
+                    f = info["_final_info"]
+                    xk[f] = info["final_info"]["x_m"][f]
+                    xrk[f] = info["final_info"]["x_ref_m"][f]
+                live = ~dead
+                x[k, live], xr[k, live] = xk[live], xrk[live]
+                dead |= term
+                if np.all(term | trunc | dead):
+                    rows_run = k + 1
+                    break
+        finally:
+            venv.close()
+        for b, c in enumerate(members):
+            legs = slice(b * n, (b + 1) * n)
+            out[c] = {"t": dt * np.arange(1, rows_run + 1), "x": x[:rows_run, legs],
+                      "x_ref": xr[:rows_run, legs], "terminated": dead[legs]}
+    return out
+
+
+def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list[dict[str, Any]]:
+    """The module docstring's metrics for each leg of ``run_batch``'s output."""
+    per = round(period_s / dt)
+    e = run["x"] - run["x_ref"]
+    out = []
+    for i in range(e.shape[1]):
+        if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
+            out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
+                        "terminated": bool(run["terminated"][i])})
+            continue
+        w = e[-METRIC_PERIODS * per:, i].reshape(METRIC_PERIODS, per)
+        rem = w - w.mean(axis=0)
+        ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
+        out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
+                    "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
+                    "terminated": False})
+    return out
+
+
+def recovery_s(run: dict[str, np.ndarray], i: int, t_end: float, band_m: float = 1e-3
+               ) -> float | None:
+    """[s] after ``t_end``, until |X − X̂| of leg i stays below ``band_m`` (inf: never)."""
+    if run["terminated"][i]:
+        return None
+    t = run["t"]
+    e = np.abs(run["x"][:, i] - run["x_ref"][:, i])
+    after = t >= t_end - 1e-9
+    outside = np.flatnonzero(e[after] >= band_m)
+    if outside.size == 0:
+        return 0.0
+    if outside[-1] == after.sum() - 1:
+        return math.inf
+    return float(t[after][outside[-1] + 1] - t_end)
+
+
+def training_ranges(spec: str) -> dict[str, tuple[float, float]] | None:
+    """What a run folder's training scenario draws, field -> (low, high); None for a
+    baseline (no training plants)."""
+    if not Path(spec).is_dir():
+        return None
+    _, _, cfg = load_policy(spec)
+    sc = load_scenario(cfg.env_kwargs["scenario"])
+    ranges = {k: (v, v) for k, v in dataclasses.asdict(sc.plant).items() if v is not None}
+    ranges.update({k: (lo, hi) for k, lo, hi in sc.randomize.ranges})
+    return ranges
+
+
+def held_out(plant: dict[str, float], ranges: dict[str, tuple[float, float]] | None
+             ) -> bool | None:
+    """Whether ``plant`` has a value the training scenario never draws (None: no training)."""
+    if ranges is None:
+        return None
+    default = Plant()
+    for k, v in plant.items():
+        lo, hi = ranges.get(k, (getattr(default, k), getattr(default, k)))
+        if lo is None or not (lo - 1e-12 <= v <= hi + 1e-12):
+            return True
+    return False
+
+
+def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_SEED,
+               grids: tuple[Grid, ...] | None = None,
+               levels: dict[str, dict[str, float]] | None = None, kick: Impulse | None = None
+               ) -> dict[str, Any]:
+    """The sweep: ``{"grids": {name: {...}}, "levels": {...}}`` (module docstring); by default
+    ``GRIDS``, ``LEVELS`` and ``LEVEL_KICK`` on the nominal scenario."""
+    grids = GRIDS if grids is None else grids
+    levels = LEVELS if levels is None else levels
+    kick = LEVEL_KICK if kick is None else kick
+    base = load_scenario(scenario)
+    period = base.reference.period
+    labels = {p: Path(p).name if Path(p).is_dir() else p for p in policies}
+    ranges = {p: training_ranges(p) for p in policies}
+    out: dict[str, Any] = {"scenario": base.name, "seed": seed,
+                           "unstable_aperiodic_mm": UNSTABLE_APERIODIC_MM, "grids": {},
+                           "levels": {}}
+    for g in grids:
+        sc = _scenario(base, g.name, g.rig)
+        cells = g.cells()
+        entry: dict[str, Any] = {
+            "rows": {"field": g.row_field, "values": list(g.row_values)},
+            "cols": {"field": g.col_field, "values": list(g.col_values)},
+            "base": g.base, "rig": g.rig, "controllers": {}}
+        for p, run in zip(policies, run_batches(policies, sc, cells, seed), strict=True):
+            m = cell_metrics(run, period, float(run["t"][0]))
+            for cell, plant in zip(m, cells, strict=True):
+                cell["held_out"] = held_out(plant, ranges[p])
+            nc = len(g.col_values)
+            entry["controllers"][labels[p]] = [m[r * nc:(r + 1) * nc]
+                                               for r in range(len(g.row_values))]
+        out["grids"][g.name] = entry
+    if levels:
+        sc = _scenario(base, "levels", LEVEL_RIG, (kick,))
+        names = list(levels)
+        plants = [levels[n] for n in names]
+        out["levels_plants"] = {n: {**levels[n], **LEVEL_RIG} for n in names}
+        out["levels_kick"] = dataclasses.asdict(kick)
+        for p, run in zip(policies, run_batches(policies, sc, plants, seed), strict=True):
+            m = cell_metrics(run, period, float(run["t"][0]))
+            for i, n in enumerate(names):
+                m[i]["recovery_s"] = recovery_s(run, i, kick.t_s + kick.duration_s)
+                m[i]["held_out"] = held_out(plants[i], ranges[p])
+                out["levels"].setdefault(n, {})[labels[p]] = m[i]
+    return out
+
+
+def _cell(m: dict[str, Any]) -> str:
+    if m["terminated"]:
+        return "terminated"
+    s = f"{m['position_rmse_mm']:.3f}"
+    return s + (" **unstable**" if m["unstable"] else "")
+
+
+def markdown(rob: dict[str, Any]) -> list[str]:
+    """The robustness section of the Markdown report."""
+    out = ["## Robustness sweep", "",
+           f"Base scenario `{rob['scenario']}`, episode seed {rob['seed']}. Position RMSE [mm] "
+           "over the last three periods; **unstable**: the error's part that does not repeat "
+           f"with the reference's period exceeds {rob['unstable_aperiodic_mm']:g} mm RMS (a "
+           "limit cycle or a divergence); terminated: the leg left its bounds. A learned "
+           "controller's cells outside its training ranges are marked †.", ""]
+    for name, g in rob["grids"].items():
+        rf, cf = g["rows"]["field"], g["cols"]["field"]
+        out += [f"### {name}", "", f"Rows `{rf}`, columns `{cf}`; every cell also has "
+                f"{g['base'] or 'nothing else'} per leg and {g['rig'] or 'nothing'} rig-wide.",
+                ""]
+        for ctrl, rows in g["controllers"].items():
+            out += [f"**{ctrl}**", "", f"| {rf} \\ {cf} | "
+                    + " | ".join(f"{v:g}" for v in g["cols"]["values"]) + " |",
+                    "|---|" + "---|" * len(g["cols"]["values"])]
+            for rv, row in zip(g["rows"]["values"], rows, strict=True):
+                out.append(f"| {rv:g} | " + " | ".join(
+                    _cell(m) + (" †" if m.get("held_out") else "") for m in row) + " |")
+            out.append("")
+    if rob["levels"]:
+        kick = rob["levels_kick"]
+        ctrls = list(next(iter(rob["levels"].values())))
+        out += ["### Levels (realworldrl_suite style)", "",
+                f"Each level's plant (with a {kick['force_N']:g} N × {kick['duration_s']:g} s "
+                f"kick at {kick['t_s']:g} s): position RMSE [mm] / recovery after the kick [s].",
+                "", "| level | plant | " + " | ".join(ctrls) + " |",
+                "|---|---|" + "---|" * len(ctrls)]
+        for lv, per in rob["levels"].items():
+            plant = ", ".join(f"{k} {v:g}" for k, v in rob["levels_plants"][lv].items())
+            cells = []
+            for c in ctrls:
+                m = per[c]
+                rec = m.get("recovery_s")
+                rec_s = "–" if rec is None else ("never" if rec == math.inf else f"{rec:.2f}")
+                cells.append(f"{_cell(m)} / {rec_s}" + (" †" if m.get("held_out") else ""))
+            out.append(f"| {lv} | {plant} | " + " | ".join(cells) + " |")
+        out.append("")
+    return out
+
+
+def plot(rob: dict[str, Any], out_dir: Path) -> list[Path]:
+    """One PNG per grid: a heatmap of position RMSE per controller (log colour scale, shared),
+    unstable cells hatched and marked U, terminated cells marked T."""
+    import matplotlib
+    from matplotlib.colors import LogNorm
+    from matplotlib.figure import Figure
+
+    paths = []
+    for name, g in rob["grids"].items():
+        ctrls = list(g["controllers"])
+        vals = {c: np.array([[np.nan if m["position_rmse_mm"] is None else m["position_rmse_mm"]
+                              for m in row] for row in g["controllers"][c]]) for c in ctrls}
+        finite = np.concatenate([v[np.isfinite(v)] for v in vals.values()])
+        lo = max(float(finite.min()), 1e-3) if finite.size else 1e-3
+        hi = max(float(finite.max()), 10 * lo) if finite.size else 1.0
+        fig = Figure(figsize=(3.2 * len(ctrls) + 1, 3.4), layout="constrained")
+        axes = np.atleast_1d(fig.subplots(1, len(ctrls)))
+        im = None
+        cmap = matplotlib.colormaps["viridis"].with_extremes(bad="lightgray")  # terminated
+        for ax, c in zip(axes, ctrls, strict=True):
+            im = ax.imshow(np.clip(vals[c], lo, hi), norm=LogNorm(lo, hi), cmap=cmap,
+                           origin="lower", aspect="auto")
+            for r, row in enumerate(g["controllers"][c]):
+                for k, m in enumerate(row):
+                    txt = ("T" if m["terminated"] else f"{m['position_rmse_mm']:.2g}"
+                           + ("\nU" if m["unstable"] else ""))
+                    ax.text(k, r, txt, ha="center", va="center", fontsize=7,
+                            color="red" if m["unstable"] else "white")
+            ax.set_xticks(range(len(g["cols"]["values"])), [f"{v:g}" for v in
+                                                            g["cols"]["values"]])
+            ax.set_yticks(range(len(g["rows"]["values"])), [f"{v:g}" for v in
+                                                            g["rows"]["values"]])
+            ax.set(title=c, xlabel=g["cols"]["field"], ylabel=g["rows"]["field"])
+        fig.colorbar(im, ax=list(axes), label="position RMSE [mm]")
+        path = out_dir / f"robustness_{name}.png"
+        fig.savefig(path, dpi=90)
+        paths.append(path)
+    return paths

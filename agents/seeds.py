@@ -1,0 +1,180 @@
+"""Several seeds of one config: training them side by side, and their results with intervals.
+
+- :func:`train_seeds` (``mpa-gym train --seeds 0 1 2 3 4``) trains one process per seed, as many
+  at once as the machine has cores (each on one torch thread), into sibling run folders
+  ``<run-dir>-s<seed>``.
+- :func:`aggregate` (used by ``mpa-gym evaluate`` when it is given several run folders of one
+  config) gives, per scenario and metric, the interquartile mean over the runs and its 95 %
+  stratified-bootstrap confidence interval, computed by the ``rliable`` library (Agarwal et al.,
+  "Deep RL at the edge of the statistical precipice", 2021) as its authors recommend for a
+  handful of runs; :func:`learning_curves` does the same for each held-out evaluation during
+  training, and :func:`plot_curves` draws them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it
+CI = 0.95
+METRICS = ("position_rmse_mm", "position_max_mm", "stiffness_rmse_pct", "saturation_pct",
+           "return")
+
+
+def cores() -> int:
+    """Cores this process may use (the affinity mask, not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def train_seeds(seeds: list[int], config: str | Path | None = None,
+                run_dir: str | Path | None = None, n_timesteps: int | None = None,
+                jobs: int | None = None, scenario: str | None = None) -> list[dict[str, Any]]:
+    """Train one run per seed in its own process (``jobs`` at once, default the cores); the
+    runs go to ``<run_dir>-s<seed>`` (default ``runs/<config stem>-s<seed>``). Returns each
+    process's ``mpa-gym train --json`` output; a failed seed raises after the others finish."""
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
+    if any(s < 0 for s in seeds):
+        raise ValueError(f"--seeds={seeds}: seeds must be >= 0")
+    from agents.train import DEFAULT_CONFIG
+
+    config = Path(config or DEFAULT_CONFIG)
+    base = Path(run_dir) if run_dir else Path("runs") / config.stem
+    folders = [base.parent / f"{base.name}-s{s}" for s in seeds]
+    for f in folders:
+        if (f / "model.zip").exists():
+            raise ValueError(f"run folder {f} already holds a model; choose another --run-dir")
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+    def one(seed: int, folder: Path) -> dict[str, Any]:
+        cmd = [sys.executable, "-m", "mpa_gym.cli", "train", "--config", str(config),
+               "--run-dir", str(folder), "--seed", str(seed), "--no-progress", "--json"]
+        if n_timesteps is not None:
+            cmd += ["--n-timesteps", str(n_timesteps)]
+        if scenario is not None:
+            cmd += ["--scenario", str(scenario)]
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if r.returncode != 0:
+            return {"run_dir": str(folder), "seed": seed, "error": r.stderr.strip()[-2000:]}
+        return {**json.loads(r.stdout), "seed": seed}
+
+    with ThreadPoolExecutor(max_workers=jobs or cores()) as pool:
+        out = list(pool.map(one, seeds, folders))
+    failed = [o for o in out if "error" in o]
+    if failed:
+        raise RuntimeError("; ".join(f"seed {o['seed']} ({o['run_dir']}) failed: {o['error']}"
+                                     for o in failed))
+    return out
+
+
+# ------------------------------------------------------------------ grouping and statistics
+
+def config_key(run: str | Path) -> str:
+    """A run's config without its seed: runs of one config share it."""
+    data = yaml.safe_load((Path(run) / "config.yaml").read_text())
+    (data.get("mpa_gym") or {}).pop("seed", None)
+    return json.dumps(data, sort_keys=True, default=str)
+
+
+def group_label(runs: list[str]) -> str:
+    """``name`` for runs ``name-s0``, ``name-s1``, … (else the first folder's name + ``…``)."""
+    names = [Path(r).name for r in runs]
+    stems = {n.rsplit("-s", 1)[0] if n.rsplit("-s", 1)[-1].isdigit() else n for n in names}
+    return stems.pop() if len(stems) == 1 else f"{names[0]}…"
+
+
+def iqm_ci(scores: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Per task (column): IQM over the runs (rows) and its 95 % stratified-bootstrap CI.
+
+    ``scores`` (n_runs, n_tasks); returns (iqm (n_tasks,), ci (2, n_tasks))."""
+    from rliable import library, metrics
+
+    scores = np.asarray(scores, dtype=float)
+    per_task = lambda x: np.array([metrics.aggregate_iqm(x[:, [j]])  # noqa: E731
+                                   for j in range(x.shape[1])])
+    with warnings.catch_warnings():  # rliable hands arch a RandomState, which arch deprecates
+        warnings.simplefilter("ignore", FutureWarning)
+        point, ci = library.get_interval_estimates(
+            {"m": scores}, per_task, reps=BOOTSTRAP_REPS, confidence_interval_size=CI,
+            random_state=np.random.RandomState(seed))
+    return point["m"], ci["m"]
+
+
+def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, dict[str, Any]]:
+    """Per scenario, for the group of ``runs`` (their labels in ``results``): each metric's
+    IQM over the runs and ``<metric>_ci`` [low, high], plus ``n_runs`` and ``terminated``
+    (how many runs terminated)."""
+    labels = [_label(r) for r in runs]
+    scen = list(results)
+    out: dict[str, dict[str, Any]] = {sc: {"n_runs": len(runs)} for sc in scen}
+    for key in METRICS:
+        scores = np.array([[results[sc][lab][key] for sc in scen] for lab in labels])
+        point, ci = iqm_ci(scores)
+        for j, sc in enumerate(scen):
+            out[sc][key] = float(point[j])
+            out[sc][f"{key}_ci"] = [float(ci[0, j]), float(ci[1, j])]
+    for sc in scen:
+        out[sc]["terminated"] = sum(bool(results[sc][lab]["terminated"]) for lab in labels)
+        rec = [results[sc][lab]["recovery_s"] for lab in labels]
+        out[sc]["recovery_s"] = None if any(r is None for r in rec) else float(np.median(rec))
+    return out
+
+
+def learning_curves(runs: list[str], key: str = "position_rmse_mm") -> dict[str, Any]:
+    """IQM and 95 % CI of ``key`` over the runs at each held-out evaluation of training, per
+    scenario (the evaluations the runs share: same steps, same scenarios)."""
+    hists = [json.loads((Path(r) / "eval" / "evaluations.json").read_text()) for r in runs
+             if (Path(r) / "eval" / "evaluations.json").is_file()]
+    if len(hists) != len(runs) or not hists:
+        return {}
+    n = min(len(h) for h in hists)
+    steps = [h["timesteps"] for h in hists[0][:n]]
+    scen = [s for s in hists[0][0]["scenarios"] if all(s in e["scenarios"] for h in hists
+                                                       for e in h[:n])]
+    out: dict[str, Any] = {"timesteps": steps, "metric": key, "scenarios": {}}
+    for sc in scen:
+        scores = np.array([[h[i]["scenarios"][sc][key] for i in range(n)] for h in hists])
+        point, ci = iqm_ci(scores)
+        out["scenarios"][sc] = {"iqm": point.tolist(), "ci_low": ci[0].tolist(),
+                                "ci_high": ci[1].tolist()}
+    return out
+
+
+def plot_curves(curves: dict[str, dict[str, Any]], path: Path) -> Path:
+    """Aggregate learning curves (IQM with the 95 % CI as a band), one panel per scenario."""
+    from matplotlib.figure import Figure
+
+    scen = sorted({s for c in curves.values() for s in c.get("scenarios", {})})
+    fig = Figure(figsize=(4 * max(1, len(scen)), 3.5), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(1, max(1, len(scen)), sharey=True))
+    for ax, sc in zip(axes, scen, strict=False):
+        for i, (label, c) in enumerate(curves.items()):
+            if sc not in c.get("scenarios", {}):
+                continue
+            t = np.array(c["timesteps"]) / 1e6
+            d = c["scenarios"][sc]
+            ax.plot(t, d["iqm"], color=f"C{i}", label=f"{label} (IQM)")
+            ax.fill_between(t, d["ci_low"], d["ci_high"], color=f"C{i}", alpha=0.25,
+                            label="95 % CI")
+        ax.set(title=sc, xlabel="env steps [M]", yscale="log")
+    axes[0].set_ylabel("held-out position RMSE [mm]")
+    axes[0].legend(fontsize=7)
+    fig.savefig(path, dpi=90)
+    return path
+
+
+def _label(spec: str) -> str:
+    return Path(spec).name if Path(spec).is_dir() else spec

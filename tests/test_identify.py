@@ -1,0 +1,302 @@
+"""Identification from rig logs: the excitation, the regulator model, and the fit against logs
+of the emulator (another process) playing a plant with known non-nominal values."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import math
+import subprocess
+import sys
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import agents.rollout
+import mpa_gym  # noqa: F401
+from agents.excite import ExciteConfig
+from agents.identify import (
+    LogData,
+    fit_regulator,
+    identify,
+    load_log,
+    read_sessions,
+    show,
+    simulate_pressure,
+)
+from agents.policies import load_policy
+from agents.rollout import rollout
+from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.hardware.emulator import EmulatorProcess
+from mpa_gym.model import dynamics
+from mpa_gym.model.leg import kinematics
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, RegulatorParams
+
+C1 = DEFAULT_PARAMS.mpa.C1
+# the rig: 0.6 kg heavier than Tab. A2, muscles 10 % softer, more viscous, a 30 ms regulator
+# with 20 ms dead time and a 20 bar/s slew limit, braid and slider friction (the fidelity effects)
+RIG = {"extra_mass_kg": 0.6, "C1_Pa": 0.9 * C1, "C2_Pa": 2500.0, "gamma_Ns_per_m": 36.0,
+       "pressure_lag_s": 0.03, "pressure_dead_time_s": 0.02, "pressure_slew_bar_per_s": 20.0,
+       "braid_friction_ratio": 0.03, "slider_friction_N": 1.5, "slider_viscous_Ns_per_m": 2.0}
+TOTAL_MASS = DEFAULT_PARAMS.leg.m + 0.6
+
+
+@pytest.fixture(scope="module")
+def rig_log(tmp_path_factory):
+    """A 20 s excitation rollout of the emulator, in its own process, playing RIG."""
+    log = tmp_path_factory.mktemp("identify") / "excite.jsonl"
+    with EmulatorProcess({"name": "rig", "duration_s": 30.0, "plant": RIG},
+                         ("--watchdog", "0.5")) as emu, pytest.MonkeyPatch.context() as mp:
+        # realtime: as on a rig (SCHED_FIFO where permitted); and stale_s relaxed to 0.2 s (the
+        # device's watchdog to 0.5 s) as in the other rig tests, so that a scheduling hiccup of
+        # a loaded test machine (telemetry 44 ms old was seen) does not stop the excitation this
+        # test only needs a log of
+        mp.setattr(agents.rollout, "HardwareLegEnv",
+                   functools.partial(agents.rollout.HardwareLegEnv, stale_s=0.2))
+        out = rollout("excite", emu.url, log, episode_s=20.0, realtime=True)
+    assert "fault" not in out["episodes"][0], out
+    return log
+
+
+def check_estimate(plant, true_mass, true_c1, true_lag, true_dead):
+    mass = plant["mass_kg"] + plant["extra_mass_kg"]
+    assert abs(mass - true_mass) <= 0.03 * true_mass, mass  # the issue's 3 %
+    assert abs(plant["C1_Pa"] - true_c1) <= 0.15 * true_c1, plant["C1_Pa"]  # 15 %
+    assert abs(plant["pressure_lag_s"] - true_lag) <= 0.010, plant["pressure_lag_s"]  # 10 ms
+    assert abs(plant["pressure_dead_time_s"] - true_dead) <= 0.010, plant  # 10 ms
+
+
+def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
+    out = tmp_path / "rig_id.yaml"
+    r = identify(rig_log, out=out, plot=tmp_path / "fit.png")
+    pl, sd = r["plant"], r["uncertainty"]
+    check_estimate(pl, TOTAL_MASS, 0.9 * C1, 0.03, 0.02)
+    assert r["validation_rmse_m"] <= 1e-3, r["validation_rmse_m"]  # the issue's 1 mm
+    # friction: 20 % on the braid ratio and the slider's Coulomb force. Both act as sign(V) times
+    # a force (μ_b × the pressure force, F_c) and differ in how that force varies with the
+    # pressures along the excitation; 20 % tells each effect from absent and from double, and
+    # leaves room for the timing noise of a real-time log (one such log gave 0.6 % and 0.9 %).
+    assert abs(pl["braid_friction_ratio"] - 0.03) <= 0.2 * 0.03, pl
+    assert abs(pl["slider_friction_N"] - 1.5) <= 0.2 * 1.5, pl
+    # viscous: c_s V and the MPAs' γ (G_e² + G_f²) V both damp the hip, and G_e² + G_f² varies
+    # only 0.12 … 0.14 over the excitation's ± 2 cm, so the log pins their sum at the reference
+    # (5 %; three logs gave 0.1 %, 0.4 % and < 1 %) but splits it between c_s and γ only
+    # loosely: three logs gave c_s 2.47, 3.06 and 1.06 N s/m for 2.0 (their reported σ, 0.16 …
+    # 0.36, understate that spread: correlated residuals), so c_s alone is held to 1.5 N s/m,
+    # which still tells the effect from absent and from double
+    kin = kinematics(0.8, DEFAULT_PARAMS.leg, DEFAULT_PARAMS.mpa)
+    g2 = kin.Ge ** 2 + kin.Gf ** 2
+    hip = pl["slider_viscous_Ns_per_m"] + pl["gamma_Ns_per_m"] * g2
+    assert abs(hip - (2.0 + 36.0 * g2)) <= 0.05 * (2.0 + 36.0 * g2), (hip, pl)
+    assert abs(pl["slider_viscous_Ns_per_m"] - 2.0) <= 1.5, (pl, sd)
+    # the 0.2 bar excitation edges never reach 20 bar/s × 30 ms: the slew is kept at 0 and
+    # bounded below, consistently with the truth
+    assert pl["pressure_slew_bar_per_s"] == 0.0 and sd["pressure_slew_bar_per_s"] is None
+    assert r["bounds"]["pressure_slew_bar_per_s"][0] <= 20.0, r["bounds"]
+    assert "(fixed; the log says ≥" in show(r), show(r)
+    assert all(v is None or (math.isfinite(v) and v >= 0) for v in r["uncertainty"].values())
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+    # the scenario: the estimate as its plant, randomize around it, loadable by every command
+    sc = load_scenario(out)
+    assert sc.plant.mass_kg == pytest.approx(r["plant"]["mass_kg"])
+    assert sc.plant.C1_Pa == pytest.approx(r["plant"]["C1_Pa"])
+    assert sc.plant.slider_friction_N == pytest.approx(pl["slider_friction_N"])
+    assert sc.plant.braid_friction_ratio == pytest.approx(pl["braid_friction_ratio"])
+    for key, lo, hi in sc.randomize.ranges:
+        assert lo <= r["plant"][key] <= hi, key
+    assert {k for k, _, _ in sc.randomize.ranges} >= {
+        "braid_friction_ratio", "slider_friction_N", "slider_viscous_Ns_per_m"}
+
+
+def test_identify_cli_json_and_bad_input(rig_log, tmp_path):
+    out = tmp_path / "cli.yaml"
+    p = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "identify", "--log", str(rig_log),
+                        "--out", str(out), "--json"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    o = json.loads(p.stdout)
+    assert {"plant", "uncertainty", "validation_rmse_m", "scenario_yaml"} <= set(o)
+    assert o["scenario_yaml"] == str(out) and out.is_file()
+    assert set(o["plant"]) >= {"mass_kg", "extra_mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa",
+                               "thickness_m", "pressure_lag_s", "pressure_dead_time_s",
+                               "pressure_slew_bar_per_s", "braid_friction_ratio",
+                               "slider_friction_N", "slider_viscous_Ns_per_m"}
+    bad = tmp_path / "empty.jsonl"
+    bad.write_text('{"event": "preflight"}\n')
+    for args, msg in ((["--log", str(tmp_path / "nope.jsonl")], "no such file"),
+                      (["--log", str(bad)], "no step records"),
+                      (["--log", str(rig_log), "--holdout", "0.9"], "--holdout=0.9")):
+        p = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "identify", *args],
+                           capture_output=True, text=True)
+        assert p.returncode == 2 and msg in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
+def sim_records(plant, seconds=20.0, policy="excite"):
+    """The step records (rollout's format) of one episode of ``policy`` on the sim env."""
+    env = gym.make("MPALegResidual-v0",
+                   scenario={"name": "sim", "duration_s": seconds, "plant": plant})
+    pol, *_ = load_policy(policy, {"task": {}})
+    obs, _ = env.reset(seed=0, options={"homing": True})
+    state, out = None, []
+    while True:
+        a, state = pol.predict(obs, state)
+        obs, r, term, trunc, info = env.step(a)
+        out.append({"episode": 0, "reward": r, **{
+            k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in info.items()}})
+        if term or trunc:
+            return out
+
+
+def sim_log(path, plant, seconds=20.0):
+    """An excitation log of the sim env (rollout's record format) on ``plant``."""
+    path.write_text("".join(json.dumps(r) + "\n" for r in sim_records(plant, seconds)))
+    return path
+
+
+@pytest.mark.parametrize("plant", [
+    {"mass_kg": 3.74 * 1.4, "C1_Pa": 1.15 * C1, "pressure_lag_s": 0.02,
+     "pressure_dead_time_s": 0.02},
+    {"mass_kg": 3.74 * 0.85, "C1_Pa": 0.85 * C1, "pressure_lag_s": 0.05,
+     "pressure_dead_time_s": 0.03},
+])
+def test_identify_recovers_dead_time_and_mass_from_sim_logs(tmp_path, plant):
+    # the sim env delays commands by whole periods: dead times of 20 and 30 ms
+    r = identify(sim_log(tmp_path / "sim.jsonl", plant), plot=tmp_path / "p.png")
+    check_estimate(r["plant"], plant["mass_kg"], plant["C1_Pa"], plant["pressure_lag_s"],
+                   plant["pressure_dead_time_s"])
+    assert r["validation_rmse_m"] <= 1e-3
+
+
+def test_an_appended_log_fits_its_newest_session_alone(rig_log, tmp_path):
+    """rollout appends to its log: a pid session on another plant, then the excitation session
+    (episode 0 in both). The fit is the excitation session's, exactly as from its own log."""
+    other = sim_records({"mass_kg": 3.74 * 0.8, "C1_Pa": 1.2 * C1}, seconds=2.0, policy="pid")
+    header = {"event": "session", "policy": "pid", "control_hz": 100.0, "episodes": 1}
+    both = tmp_path / "appended.jsonl"
+    both.write_text(json.dumps(header) + "\n" + "".join(json.dumps(r) + "\n" for r in other)
+                    + rig_log.read_text())
+    alone = identify(rig_log, plot=tmp_path / "alone.png")
+    r = identify(both, plot=tmp_path / "both.png")
+    # the same records in, the same deterministic fit out: equal to the last bit
+    assert r["plant"] == alone["plant"] and r["uncertainty"] == alone["uncertainty"]
+    assert r["validation_rmse_m"] == alone["validation_rmse_m"]
+    assert r["session"]["index"] == 1 and r["session"]["sessions"] == 2
+    assert r["session"]["policy"] == "excite" and "the log holds 2 sessions" in r["notes"][0]
+    # an explicit session: the pid one (2 s) is too short to fit; an index out of range
+    assert identify(both, plot=tmp_path / "b1.png", session=-1)["plant"] == alone["plant"]
+    with pytest.raises(ValueError, match="too short to fit and validate"):
+        identify(both, plot=tmp_path / "b0.png", session=0)
+    with pytest.raises(ValueError, match=r"--session=2: .* holds 2 session\(s\); give a whole "
+                                         r"number in \[-2, 1\]"):
+        identify(both, session=2)
+
+
+def test_sessions_split_at_their_headers(tmp_path):
+    """Sessions are told apart by their headers, not by episode numbers (each starts at 0);
+    records before any header are a session of their own; the period is the header's rate."""
+    def steps(n, dt, x):
+        return [{"episode": 0, "t_s": k * dt, "x_m": x, "pressure_bar": [1.0, 2.0],
+                 "pressure_cmd_bar": [1.0, 2.0]} for k in range(n)]
+
+    def lines(recs):
+        return "".join(json.dumps(r) + "\n" for r in recs)
+
+    log = tmp_path / "r.jsonl"
+    log.write_text(lines(steps(4, 0.01, 0.80))
+                   + lines([{"event": "session", "control_hz": 50.0}, {"event": "preflight"}])
+                   + lines([*steps(5, 0.02, 0.81), {"event": "stopped", "fault": "x"}])
+                   + lines([{"event": "session", "control_hz": 200.0}])
+                   + lines(steps(6, 0.005, 0.82))
+                   + lines([{"event": "session", "control_hz": 100.0}]))  # stopped in pre-flight
+    sessions = read_sessions(log)
+    assert [s.header and s.header["control_hz"] for s in sessions] == [None, 50.0, 200.0, 100.0]
+    assert [len(s.steps) for s in sessions] == [4, 5, 6, 0]
+    newest = load_log(log)  # the newest session with steps
+    assert len(newest) == 1 and newest[0].x.size == 6 and np.all(newest[0].x == 0.82)
+    assert newest[0].dt == 1 / 200.0
+    first = load_log(log, session=1)[0]
+    assert first.x.size == 5 and np.all(first.x == 0.81) and first.dt == 1 / 50.0
+    with pytest.raises(ValueError, match=r"--session=-1: session 3 .* has no step records"):
+        load_log(log, session=-1)
+
+
+def test_regulator_model_matches_its_closed_forms():
+    dt, n = 0.01, 200
+    rng = np.random.default_rng(0)
+    cmd = rng.uniform(0, 5 * BAR, (n, 2))
+    p0 = np.array([1 * BAR, 2 * BAR])
+    t_cmd, t = dt * np.arange(n + 1), dt * np.arange(1, n + 1)  # command j over (t_j − dt, t_j]
+    # no lag, a dead time of 2.5 periods: sample j (at the end of period j) sees command j − 2,
+    # which reached the regulator half a period before
+    out = simulate_pressure(cmd, t_cmd, t, p0, 0.0, 0.025)
+    np.testing.assert_array_equal(out[2:], cmd[:-2])
+    np.testing.assert_array_equal(out[:2], np.tile(p0, (2, 1)))
+    # a step through a first-order lag: 1 − e^(−t/τ) at the sample times
+    step = np.full((n, 2), 3 * BAR)
+    out = simulate_pressure(step, t_cmd, t, np.zeros(2), 0.05, 0.0)
+    np.testing.assert_allclose(out[:, 0], 3 * BAR * (1 - np.exp(-t / 0.05)), rtol=1e-12)
+    # a fractional dead time: the step starts that much later
+    out = simulate_pressure(step, t_cmd, t, np.zeros(2), 0.05, 0.025)
+    np.testing.assert_allclose(out[2:, 1], 3 * BAR * (1 - np.exp(-(t[2:] - 0.025) / 0.05)),
+                               rtol=1e-12)
+    # a late step (the 5th starts 4 ms late): its predecessor's command holds 4 ms longer, and
+    # each sample still sees its own period's command (a quarter-period dead time avoids ties)
+    t_late = t_cmd.copy()
+    t_late[5:] += 0.004
+    t_meas = np.minimum(t_late[:-1] + dt, t_late[1:])
+    np.testing.assert_array_equal(simulate_pressure(cmd, t_late, t_meas, p0, 0.0, 0.0025), cmd)
+    lagged = simulate_pressure(step, t_late, t_meas, np.zeros(2), 0.05, 0.0)
+    np.testing.assert_allclose(lagged[:, 0], 3 * BAR * (1 - np.exp(-t_meas / 0.05)), rtol=1e-12)
+
+
+def test_regulator_fit_recovers_a_slew_limit_and_bounds_it_when_hidden():
+    """The regulator stage against pressures of the numpy reference regulator
+    (``dynamics.regulator_pressure``, not the kernel the fit uses): 30 ms lag, 25 ms dead time,
+    20 bar/s slew, PRBS commands with 1 bar steps (r τ = 0.6 bar, so every edge ramps)."""
+    reg = dataclasses.replace(DEFAULT_PARAMS,
+                              regulator=RegulatorParams(lag=0.03, dead_time=0.025, slew=20 * BAR))
+    rng = np.random.default_rng(1)
+    dt, n, h = 0.01, 1000, 0.005  # control period, steps, generation grid (switches on it)
+
+    def log_of(step_bar):
+        cmd = 3 * BAR + step_bar * BAR * (rng.random((n, 2)) < 0.5)
+        t_cmd = dt * np.arange(n + 1)
+        p, out = np.full(2, 3 * BAR), np.empty((n, 2))
+        for k in range(2 * n):  # delayed command over [k h, (k + 1) h): cmd[(t − 25 ms)/dt]
+            j = math.floor((k * h - 0.025) / dt + 1e-9)
+            c = cmd[j] if j >= 0 else np.full(2, 3 * BAR)
+            p = dynamics.regulator_pressure(p, c, h, reg)
+            if k % 2 == 1:
+                out[k // 2] = p
+        noisy = out + rng.normal(0.0, 1e-3 * BAR, out.shape)  # 1 mbar sensor noise
+        return LogData(dt, t_cmd, t_cmd[1:], np.zeros(n), noisy, cmd)
+
+    est, sd, rmse, bounds, notes = fit_regulator([log_of(1.0)])
+    # tolerances: 2 % of the slew, 2 ms (the noise is 1 mbar against 1 bar edges)
+    assert est["pressure_slew_bar_per_s"] == pytest.approx(20.0, rel=0.02), est
+    assert abs(est["pressure_lag_s"] - 0.03) < 0.002 and abs(est["pressure_dead_time_s"] - 0.025) \
+        < 0.002, est
+    assert 0 < sd["pressure_slew_bar_per_s"] < 1.0 and not bounds, (sd, bounds)
+    assert rmse < 1.5e-3, rmse  # [bar] the 1 mbar noise, no model error on top
+    # 0.2 bar edges never reach the limit: not identified, kept at 0 (unlimited), bounded below by
+    # the largest edge over the lag, which the true 20 bar/s respects
+    est, sd, _, bounds, notes = fit_regulator([log_of(0.2)])
+    assert est["pressure_slew_bar_per_s"] == 0.0 and sd["pressure_slew_bar_per_s"] is None
+    assert 5.0 < bounds["pressure_slew_bar_per_s"][0] <= 20.0, bounds
+    assert any("pressure_slew_bar_per_s is kept at 0" in m for m in notes)
+    assert abs(est["pressure_lag_s"] - 0.03) < 0.002, est
+
+
+def test_excitation_is_bounded_and_repeatable():
+    cfg = ExciteConfig()
+    policy, env_id, _ = load_policy("excite", {"task": {}})
+    assert env_id == "MPALegResidual-v0"
+    seq = np.array([policy.perturbation_bar(0.01 * k) for k in range(3000)])
+    assert np.all(np.abs(seq) <= cfg.amplitude_bar + 1e-12)
+    assert np.std(seq[:, 0]) > 0.2 * cfg.amplitude_bar  # it does excite
+    policy.reset()
+    again = np.array([policy.perturbation_bar(0.01 * k) for k in range(3000)])
+    np.testing.assert_array_equal(seq, again)
+    with pytest.raises(ValueError, match=r"excite.amplitude_bar=2 bar is outside"):
+        ExciteConfig(amplitude_bar=2.0)

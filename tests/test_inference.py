@@ -1,0 +1,138 @@
+"""The deployed (compiled) inference path against SB3's deterministic action."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+
+import mpa_gym  # noqa: F401
+from agents.inference import DeployedPolicy
+from agents.policies import LearnedPolicy, load_run
+from agents.train import train
+from agents.wrappers import FeatureSpec
+
+# SB3 runs the network in float32, the deployed path in float64: the actions differ by float32
+# rounding of the features and the 64-wide layers (~1e-7 of O(1) values), far inside 1e-6.
+ATOL = 1e-6
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A run of the default config, trained for a few hundred steps (the weights and the
+    normaliser's statistics are the trained ones; their quality does not matter here)."""
+    tmp = tmp_path_factory.mktemp("inference")
+    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    hp = cfg["MPALegResidual-v0"]
+    hp.update(n_envs=4, n_timesteps=512, n_steps=64, batch_size=128, n_epochs=2)
+    hp["env_kwargs"]["task"]["episode_s"] = 0.5
+    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
+    path = tmp / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return train(path, tmp / "run", progress=False)
+
+
+def compare(sb3, deployed, env, n=250, restart_at=120, seed=0):
+    """Largest |a_sb3 − a_deployed| over ``n`` steps of the env's own observations (SB3's action
+    driving it), with a restart (episode_start) in the middle and wherever an episode ends."""
+    obs, _ = env.reset(seed=seed)
+    state, dstate, start = None, None, np.array([True])
+    err, moved = 0.0, 0.0
+    for i in range(n):
+        a, state = sb3.predict(obs, state, start, deterministic=True)
+        b, dstate = deployed.predict(obs, dstate, start)
+        err = max(err, float(np.max(np.abs(np.asarray(a, float) - b))))
+        moved = max(moved, float(np.max(np.abs(a))))
+        obs, _, term, trunc, _ = env.step(np.clip(a, -1, 1))
+        if term or trunc:
+            obs, _ = env.reset()
+        start = np.array([i + 1 == restart_at or term or trunc])
+    return err, moved
+
+
+def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
+    sb3, cfg = load_run(tiny_run)
+    deployed, _ = load_run(tiny_run, deployed=True)
+    assert isinstance(deployed, DeployedPolicy) and deployed.features == sb3.features
+    task = {k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"}
+    env = gym.make("MPALegResidual-v0", scenario="load_1kg", task={**task, "episode_s": 5.0})
+    err, moved = compare(sb3, deployed, env)
+    assert moved > 1e-3  # the actions are not trivially zero
+    assert err < ATOL, err
+
+
+def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=True, seed=0):
+    """A LearnedPolicy around a freshly initialised PPO (random weights) and a normaliser with
+    made-up statistics, for the branches the default config does not take."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from agents.wrappers import ForceStiffnessAction, TrackingErrorObservation
+
+    def make():
+        env = gym.make(env_id, task={"episode_s": 3.0})
+        if features is not None:
+            env = TrackingErrorObservation(env, **features)
+        if force_stiffness is not None:
+            env = ForceStiffnessAction(env, force_N=force_stiffness[0],
+                                       stiffness_rel=force_stiffness[1])
+        return env
+
+    venv = DummyVecEnv([make])
+    norm = None
+    if normalize:
+        norm = VecNormalize(venv, norm_reward=False, clip_obs=5.0)
+        rng = np.random.default_rng(seed)
+        d = venv.observation_space.shape[0]
+        norm.obs_rms.mean = rng.normal(0, 0.1, d)
+        norm.obs_rms.var = rng.uniform(0.01, 2.0, d)
+        norm.training = False
+    # ortho_init=False: torch's default init, whose action layer is not scaled down to ~0.01
+    model = PPO("MlpPolicy", venv, policy_kwargs={**policy_kwargs, "ortho_init": False},
+                seed=seed, device="cpu")
+    fs = None if force_stiffness is None else (*force_stiffness, 1.0)
+    return LearnedPolicy(model, norm, FeatureSpec(**features) if features else None, 0.01, fs)
+
+
+@pytest.mark.parametrize("env_id,features,policy_kwargs,fs,normalize", [
+    ("MPALeg-v0", None, {"net_arch": [32, 32, 16]}, None, True),
+    ("MPALeg-v0", {"harmonics": 2, "previous_action": True, "mask_pressures": True},
+     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ReLU}, None, False),
+    ("MPALegResidual-v0", {"harmonics": 1, "fine_error_m": 0.001, "remodulate": True},
+     {"net_arch": [16]}, None, True),
+    ("MPALegResidual-v0", {"errors_only": True, "harmonics": 2, "remodulate": True,
+                           "previous_action": True},
+     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ELU}, (20.0, 0.3), True),
+])
+def test_deployed_path_covers_every_feature_and_layer_option(env_id, features, policy_kwargs,
+                                                             fs, normalize):
+    sb3 = _untrained(env_id, features, policy_kwargs, fs, normalize)
+    deployed = DeployedPolicy.from_learned(sb3, 9 if env_id == "MPALegResidual-v0" else 8)
+    err, moved = compare(sb3, deployed, gym.make(env_id, task={"episode_s": 3.0}))
+    assert moved > 1e-2  # the actions are not trivially zero
+    assert err < ATOL, err
+
+
+def test_deployed_policy_refuses_a_wrong_observation(tiny_run):
+    deployed, _ = load_run(tiny_run, deployed=True)
+    with pytest.raises(ValueError, match=r"observation has shape \(8,\).*\(9,\)"):
+        deployed.predict(np.zeros(8))
+
+
+def test_learned_policy_action_is_sb3_predicts_bit_for_bit(tiny_run):
+    # LearnedPolicy computes the deterministic action by SB3's own torch operations without
+    # model.predict's per-call overhead: it must be model.predict's action exactly, for one
+    # observation and batches, float32 and float64 inputs, and beyond the action bounds (clip).
+    policy, _ = load_run(tiny_run)
+    rng = np.random.default_rng(3)
+    dim = policy.model.observation_space.shape[0]
+    for n, dtype in ((1, np.float32), (16, np.float64), (257, np.float32)):
+        obs = rng.normal(0.0, 4.0, (n, dim)).astype(dtype)
+        ours = policy._mean_action(obs)
+        theirs, _ = policy.model.predict(obs, deterministic=True)
+        assert ours.dtype == theirs.dtype and np.array_equal(ours, theirs)
+    big = np.full((2, dim), 50.0)  # far outside the normalised range
+    a = policy._mean_action(big)
+    assert np.array_equal(a, policy.model.predict(big, deterministic=True)[0])
+    assert np.all(np.abs(a) <= 1.0)

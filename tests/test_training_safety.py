@@ -1,0 +1,316 @@
+"""Training loses nothing: kills and signals (real subprocesses, real signals), resume from the
+newest complete state, atomic artefacts, the NaN guard, damaged files named."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import random
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from conftest import default_sigint
+from stable_baselines3 import PPO
+
+from agents.config import load_config
+from agents.policies import load_run
+from agents.train import (
+    TrainingStopped,
+    latest_state,
+    read_eval_history,
+    train,
+    write_eval_history,
+    zip_timesteps,
+)
+from mpa_gym.cli import main
+
+EV = {"name": "ev", "duration_s": 0.5}
+
+
+def tiny_config(tmp_path, n_timesteps=256, checkpoint_freq=256, eval_freq=256, **over):
+    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    hp = cfg["MPALegResidual-v0"]
+    hp.update(n_envs=4, n_timesteps=n_timesteps, n_steps=32, batch_size=64, n_epochs=1)
+    hp["env_kwargs"]["task"]["episode_s"] = 0.5
+    hp.update(over)
+    cfg["mpa_gym"].update(eval_scenarios=[EV], eval_freq=eval_freq,
+                          checkpoint_freq=checkpoint_freq)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def start(args, **kw):
+    return subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "train", "--no-progress",
+                             *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=default_sigint, **kw)
+
+
+def markers(run):
+    return sorted(int(p.name.split("_")[1]) for p in (run / "checkpoints").glob("ppo_*_steps.json"))
+
+
+def wait_for_checkpoint_after(proc, run, steps, timeout=120.0):
+    """Wait until a complete checkpoint beyond ``steps`` exists (the process still running)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if (run / "checkpoints").is_dir() and markers(run) and markers(run)[-1] > steps:
+            return markers(run)[-1]
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    raise AssertionError("no new checkpoint within the timeout")
+
+
+def finite_model(path):
+    model = PPO.load(path, device="cpu")
+    return all(bool(torch.isfinite(p).all()) for p in model.policy.parameters())
+
+
+# the kill points of the test below; MPA_TEST_SEED=N explores others
+KILL_SEED = int(os.environ.get("MPA_TEST_SEED", "20261201"))
+
+
+def test_killed_twice_at_random_points_resumes_without_going_back(tmp_path):
+    rng = random.Random(KILL_SEED)  # the kill points; the seed is in every failure message
+    print(f"kill points: MPA_TEST_SEED={KILL_SEED}")
+    run = tmp_path / "run"
+    # 16 envs x 32 steps per rollout and one 512-sample batch per update: ~1000 env steps/s on
+    # the 2-core machine, so the total is several times what can run within the two kill
+    # windows (a checkpoint interval, then at most 0.5 s, after each process's start-up) and
+    # both kills land before the run ends
+    total = 8192
+    proc = start(["--config", str(tiny_config(tmp_path, total, checkpoint_freq=256,
+                                              eval_freq=1024, n_envs=16, batch_size=512)),
+                  "--run-dir", str(run)])
+    reached = []  # the newest complete checkpoint when each kill happened
+    errs = []  # stderr of each resumed process
+    for _ in range(2):
+        wait_for_checkpoint_after(proc, run, reached[-1] if reached else 0)
+        time.sleep(rng.uniform(0.0, 0.5))  # a random point: mid-rollout, mid-update, mid-save
+        assert proc.poll() is None, (KILL_SEED, "the run ended before the kill: raise total",
+                                     proc.communicate())
+        os.kill(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+        if reached:
+            errs.append(err)
+        reached.append(markers(run)[-1])
+        assert reached[-1] < total, KILL_SEED
+        proc = start(["--resume", str(run)])
+    print(f"killed after the checkpoints at {reached} of {total} steps")
+    _, err = proc.communicate(timeout=300)
+    errs.append(err)
+    assert proc.returncode == 0, (KILL_SEED, err)
+    assert not any("Traceback" in e for e in errs), (KILL_SEED, errs)
+    # each resume said where it started, and never below the newest complete checkpoint
+    starts = [int(re.search(r"at (\d+) env steps", e).group(1)) for e in errs]
+    assert starts == reached, (KILL_SEED, errs)
+    final = zip_timesteps(run / "model.zip")
+    assert final >= total, KILL_SEED
+    assert finite_model(run / "model.zip")
+    # the evaluation history's step counts never go backwards, nor beyond the model
+    hist, ts, _, _ = read_eval_history(run / "eval")
+    assert [h["timesteps"] for h in hist] == ts
+    assert all(b > a for a, b in itertools.pairwise(ts)), (KILL_SEED, ts)
+    assert ts[-1] <= final
+    _, cfg = load_run(run)  # and the run loads like any other
+    assert cfg.n_timesteps == total
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_sigterm_and_ctrl_c_save_like_a_normal_end(tmp_path, sig):
+    run = tmp_path / "run"
+    proc = start(["--config", str(tiny_config(tmp_path, 10**6, checkpoint_freq=128)),
+                  "--run-dir", str(run)])
+    newest = wait_for_checkpoint_after(proc, run, 0)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err
+    lines = [ln for ln in err.splitlines() if ln.startswith("mpa-gym train:")]
+    assert len(lines) == 1 and f"stopped by {signal.Signals(sig).name}" in lines[0], err
+    saved = zip_timesteps(run / "model.zip")
+    assert saved >= newest and markers(run)[-1] == saved  # the stop wrote a checkpoint too
+    assert finite_model(run / "model.zip")
+    assert latest_state(run, True)[0] == saved
+
+
+def _poison_update(monkeypatch, n):
+    """The n-th PPO update sets a weight to NaN (a diverging update)."""
+    calls = {"n": 0}
+    original = PPO.train
+
+    def poisoned(self):
+        original(self)
+        calls["n"] += 1
+        if calls["n"] == n:
+            with torch.no_grad():
+                next(iter(self.policy.parameters())).fill_(float("nan"))
+
+    monkeypatch.setattr(PPO, "train", poisoned)
+
+
+def test_nan_guard_stops_and_keeps_the_last_finite_state(tmp_path, monkeypatch):
+    _poison_update(monkeypatch, 4)
+    run = tmp_path / "run"
+    with pytest.raises(TrainingStopped, match="NaN guard") as e:
+        train(tiny_config(tmp_path, 4096, checkpoint_freq=128), run, progress=False)
+    # updates 1-3 were finite: 3 rollouts of 128 steps, then the 4th rollout ran on the 3rd
+    # update's weights before the diverging update
+    assert e.value.signum is None and e.value.timesteps == 3 * 128 + 128
+    assert markers(run)[-1] == e.value.timesteps
+    for p in (run / "checkpoints").glob("ppo_*_steps.zip"):
+        assert finite_model(p), p
+    assert not (run / "model.zip").exists() or finite_model(run / "model.zip")
+    assert "kept the last finite state" in str(e.value)
+
+
+def test_nan_guard_catches_the_last_update(tmp_path, monkeypatch):
+    """The update after the last rollout diverges: no rollout follows to run the guard, so
+    learn() returns normally; training must still stop, save nothing non-finite, and say so."""
+    _poison_update(monkeypatch, 2)  # 256 steps: two rollouts of 128, two updates
+    run = tmp_path / "run"
+    with pytest.raises(TrainingStopped, match="NaN guard: the last PPO update") as e:
+        train(tiny_config(tmp_path, 256, checkpoint_freq=128), run, progress=False)
+    # the checkpoint at 256 steps was written during the 2nd rollout, before the bad update
+    assert e.value.signum is None and e.value.timesteps == 256 == markers(run)[-1]
+    assert "kept the last finite state, checkpoints/ppo_256_steps.zip at 256 steps" in str(e.value)
+    for p in (run / "checkpoints").glob("ppo_*_steps.zip"):
+        assert finite_model(p), p
+    assert not (run / "model.zip").exists()  # never saved non-finite
+
+
+def kill_after(run, steps):
+    """The run folder as a SIGKILL leaves it once the newest complete checkpoint is ``steps``:
+    no model.zip, later checkpoints torn (no marker)."""
+    (run / "model.zip").unlink(missing_ok=True)
+    for m in (run / "checkpoints").glob("ppo_*_steps.json"):
+        if int(m.name.split("_")[1]) > steps:
+            m.unlink()
+
+
+def test_the_step_budget_of_n_timesteps_survives_a_kill(tmp_path, capsys):
+    """--n-timesteps is written into the run's config.yaml, so a killed run resumed without it
+    trains to the budget it was started with, not to the config file's."""
+    run = tmp_path / "run"
+    train(tiny_config(tmp_path, 512, checkpoint_freq=128), run, n_timesteps=256, progress=False)
+    assert load_config(run / "config.yaml").n_timesteps == 256
+    kill_after(run, 128)
+    train(resume=run, progress=False)
+    assert zip_timesteps(run / "model.zip") == 256  # not the file's 512
+    # on resume, --n-timesteps N trains N more: the budget becomes the steps done + N
+    train(resume=run, n_timesteps=128, progress=False)
+    assert "config.yaml: n_timesteps 256 -> 384" in capsys.readouterr().err
+    assert load_config(run / "config.yaml").n_timesteps == 384
+    kill_after(run, 256)
+    train(resume=run, progress=False)
+    assert zip_timesteps(run / "model.zip") == 384
+
+
+@pytest.fixture(scope="module")
+def evaluated_run(tmp_path_factory):
+    """A finished run: evaluations at 0, 256 and 512 steps, checkpoints every 128."""
+    tmp = tmp_path_factory.mktemp("best")
+    return train(tiny_config(tmp, 512, checkpoint_freq=128, eval_freq=256), tmp / "run",
+                 progress=False)
+
+
+@pytest.mark.parametrize(("returns", "kept_best"), [([-10.0, -5.0, -1.0], 256),
+                                                    ([-1.0, -5.0, -0.5], None)])
+def test_resume_drops_a_best_model_of_the_discarded_timeline(evaluated_run, tmp_path, capsys,
+                                                             returns, kept_best):
+    """Killed after the evaluation at 512 steps saved best/ but before the checkpoint at 512:
+    the resume cuts that evaluation, and best/ with it. It comes back from the checkpoint at the
+    best kept evaluation (256), or, the best kept being the initial policy (no checkpoint at
+    step 0), is removed until the next evaluation writes one. The returns are set by hand to
+    make each case."""
+    run = tmp_path / "run"
+    shutil.copytree(evaluated_run, run)
+    hist, ts, _, lens = read_eval_history(run / "eval")
+    assert ts == [0, 256, 512]
+    write_eval_history(run / "eval", hist, ts, [[r] for r in returns], lens)
+    for src, dst in (("ppo_512_steps.zip", "best_model.zip"),
+                     ("ppo_vecnormalize_512_steps.pkl", "vecnormalize.pkl")):
+        shutil.copy(run / "checkpoints" / src, run / "best" / dst)
+    kill_after(run, 384)
+    train(resume=run, n_timesteps=64, progress=False)  # one rollout: no evaluation
+    err = capsys.readouterr().err
+    assert "best/ was saved at step 512 by an evaluation after step 384" in err, err
+    best = run / "best" / "best_model.zip"
+    if kept_best is not None:
+        assert f"re-derived it from checkpoints/ppo_{kept_best}_steps.zip" in err, err
+        ck = run / "checkpoints"
+        assert best.read_bytes() == (ck / f"ppo_{kept_best}_steps.zip").read_bytes()
+        assert (run / "best" / "vecnormalize.pkl").read_bytes() == \
+            (ck / f"ppo_vecnormalize_{kept_best}_steps.pkl").read_bytes()
+    else:
+        assert "removed it" in err and not best.exists(), err
+        assert not (run / "best" / "vecnormalize.pkl").exists()
+        train(resume=run, n_timesteps=256, progress=False)  # an evaluation at 512 + 256
+        assert zip_timesteps(best) == 768  # the next evaluation wrote best/
+    _, ts, _, _ = read_eval_history(run / "eval")
+    assert max(ts) <= zip_timesteps(run / "model.zip")
+
+
+def test_a_torn_checkpoint_is_skipped_and_said(tmp_path, capsys):
+    run = train(tiny_config(tmp_path, 512, checkpoint_freq=128), tmp_path / "run",
+                progress=False)
+    newest = markers(run)[-1]
+    # a kill between writing the model and its marker leaves a checkpoint without a marker;
+    # one whose file was truncated afterwards is named and skipped
+    zpath = run / "checkpoints" / f"ppo_{newest}_steps.zip"
+    zpath.write_bytes(zpath.read_bytes()[:100])
+    (run / "model.zip").unlink()
+    state = latest_state(run, True)
+    assert state[0] < newest and any("skipped damaged checkpoint" in n for n in state[3])
+    train(resume=run, n_timesteps=128, progress=False)
+    err = capsys.readouterr().err
+    assert "skipped damaged checkpoint" in err and f"at {state[0]} env steps" in err
+    assert "dropped" in err  # the evaluations after that state went with it, said so
+
+
+@pytest.mark.parametrize("damage", ["vecnormalize.pkl", "eval/evaluations.npz",
+                                    "eval/evaluations.json", "model.zip"])
+def test_damaged_files_are_named(tmp_path, damage, capsys):
+    run = train(tiny_config(tmp_path, 128, checkpoint_freq=128), tmp_path / "run",
+                progress=False)
+    path = run / damage
+    path.write_bytes(path.read_bytes()[: max(1, path.stat().st_size // 3)])
+    code = main(["evaluate", "--policy", str(run), "--scenarios", "nominal", "--out",
+                 str(tmp_path / "ev")])
+    err = capsys.readouterr().err
+    assert code == 2 and str(path) in err and "damaged" in err, err
+    assert not (tmp_path / "ev" / "report.json").exists()
+
+
+def test_atomic_writes_leave_no_torn_artefacts(tmp_path):
+    """Every file of a finished run loads; no temporary file is left behind."""
+    run = train(tiny_config(tmp_path, 256, checkpoint_freq=128), tmp_path / "run",
+                progress=False)
+    assert not list(run.rglob(".*.tmp"))
+    for marker in (run / "checkpoints").glob("ppo_*_steps.json"):
+        meta = json.loads(marker.read_text())
+        for name, size in meta["files"].items():
+            assert (marker.parent / name).stat().st_size == size
+    hist, ts, res, _ = read_eval_history(run / "eval")
+    assert len(hist) == len(ts) == len(res) and np.all(np.isfinite(res))
+    assert load_config(run / "config.yaml").n_timesteps == 256
+
+
+@pytest.mark.parametrize("total", [4096, 256])  # the 2nd update: mid-run, or the last one
+def test_nan_guard_on_the_command_line_exits_1_with_one_line(tmp_path, monkeypatch, capsys,
+                                                             total):
+    _poison_update(monkeypatch, 2)
+    code = main(["train", "--config", str(tiny_config(tmp_path, total, checkpoint_freq=128)),
+                 "--run-dir", str(tmp_path / "run"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and err.count("\n") == 1, err
+    assert err.startswith("mpa-gym train: NaN guard:") and "kept the last finite state" in err
