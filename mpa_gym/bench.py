@@ -70,12 +70,13 @@ def integrator_error(duration_s: float = 30.0, residual_bar: float = 0.3) -> flo
     (rtol 1e-10) integrating every 10 ms segment with the same held command."""
     from mpa_gym.model.dynamics import integrate_reference, plant_rhs
     from mpa_gym.model.params import BAR
+    from mpa_gym.task.contract import ST_V, ST_X
 
     env = gym.make("MPALegResidual-v0", scenario="initial_error",
                    task={"episode_s": duration_s})
     env.reset(seed=0)
     engine = env.unwrapped.engine
-    y = engine.state[0, :2].copy()
+    y = engine.state[0, [ST_X, ST_V]]  # (X, V): the reference integrates the mechanics
     scale = residual_bar / env.unwrapped.cfg.residual_scale_bar
     err = 0.0
     for i in range(env.unwrapped.plan.n_steps):

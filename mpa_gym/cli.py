@@ -8,33 +8,74 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import signal
 import sys
+import threading
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mpa_gym.design import (
-    P_MAX_DEFAULT,
-    ConstantStiffness,
-    FeedforwardDesign,
-    FlexorPattern,
-    Reference,
-    StiffnessEnvelope,
-    feasible_stiffness_range,
-    mode_pattern,
-)
+from mpa_gym.analysis.scenario import Inputs
+from mpa_gym.design import FeedforwardDesign, Reference, feasible_stiffness_range
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
+
+# The design flags' defaults are the dataclasses' (one definition); the name each flag's value
+# goes by in their error messages, to say which flag was wrong.
+REFERENCE, INPUTS = Reference(), Inputs()
+FLAG_FIELDS = {"--x0": "reference.x0_m", "--amp": "reference.amp_m",
+               "--period": "reference.period_s", "--pf-mean": "inputs.pf_mean_bar",
+               "--pf-amp": "inputs.pf_amp_bar", "--p-max": "inputs.p_max_bar"}
+
+PERIOD_MAX_S = 60.0  # [s] longest reference period the CLI accepts (20 × the paper's 3 s)
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM, raised where Python would raise KeyboardInterrupt for Ctrl-C, so that every
+    ``finally`` / ``except BaseException`` (venting the rig, saving a model) runs for it too."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class CommandStopped(Exception):
+    """A command that ran but stopped early: ``out`` is still printed, then ``message`` on
+    stderr, and the process exits with ``code``."""
+
+    def __init__(self, out: dict[str, Any] | None, message: str, code: int) -> None:
+        super().__init__(message)
+        self.out, self.message, self.code = out, message, code
+
+
+def check_out_dir(flag: str, path: str) -> Path:
+    """An output folder, checked before any work: not a file, creatable, writable."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{flag} {path!r} is a file; give a folder (it is created if missing)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path!r} cannot be created: {e.strerror}") from None
+    if not os.access(p, os.W_OK):
+        raise ValueError(f"{flag} {path!r} is not writable")
+    return p
 
 
 def _add_design_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("reference (Eq. 21) and inputs (Eq. 22 / Table 1 / Eq. 25)")
-    g.add_argument("--x0", type=float, default=0.8, metavar="M", help="X̂0 [m] (default 0.8)")
-    g.add_argument("--amp", type=float, default=0.02, metavar="M", help="Â [m] (default 0.02)")
-    g.add_argument("--period", type=float, default=3.0, metavar="S", help="T [s] (default 3)")
-    g.add_argument("--pf-mean", type=float, default=0.5, metavar="BAR",
-                   help="P'_f0 [bar] (default 0.5, Fig. 3)")
-    g.add_argument("--pf-amp", type=float, default=0.0, metavar="BAR", help="A_f [bar] (default 0)")
+    g.add_argument("--x0", type=float, default=REFERENCE.x0, metavar="M",
+                   help="X̂0 [m] (default %(default)s)")
+    g.add_argument("--amp", type=float, default=REFERENCE.amp, metavar="M",
+                   help="Â [m] (default %(default)s)")
+    g.add_argument("--period", type=float, default=REFERENCE.period, metavar="S",
+                   help=f"T [s] in [0.1, {PERIOD_MAX_S:g}] (default %(default)s)")
+    g.add_argument("--pf-mean", type=float, default=INPUTS.pf_mean_bar, metavar="BAR",
+                   help="P'_f0 [bar] (default %(default)s, Fig. 3)")
+    g.add_argument("--pf-amp", type=float, default=INPUTS.pf_amp_bar, metavar="BAR",
+                   help="A_f [bar] (default %(default)s)")
     x = g.add_mutually_exclusive_group()
     x.add_argument("--mode", type=int, choices=(1, 2, 3), help="Table 1 preset for P'_f0, A_f")
     x.add_argument("--stiffness", choices=("kmax", "kmin"),
@@ -42,27 +83,27 @@ def _add_design_flags(p: argparse.ArgumentParser) -> None:
     x.add_argument("--stiffness-const", type=float, metavar="N_PER_M",
                    help="Eq. (25) design for a constant k̂ [N/m]")
     g.add_argument("--samples", type=int, default=61, metavar="N",
-                   help="samples over one period (default 61)")
-    g.add_argument("--p-max", type=float, default=P_MAX_DEFAULT / BAR, metavar="BAR",
-                   help="upper pressure limit [bar] (default 7)")
+                   help="samples over one period (default %(default)s)")
+    g.add_argument("--p-max", type=float, default=INPUTS.p_max_bar, metavar="BAR",
+                   help="upper pressure limit [bar] (default %(default)s)")
 
 
 def _design_from_args(a: argparse.Namespace) -> FeedforwardDesign:
-    check_range("--x0", a.x0, 0.0, low_open=True, unit="m")
-    check_range("--amp", a.amp, 0.0, unit="m")
-    check_range("--period", a.period, 0.0, low_open=True, unit="s")
-    check_range("--p-max", a.p_max, 0.0, low_open=True, unit="bar")
-    check_range("--pf-mean", a.pf_mean, 0.0, a.p_max, unit="bar")
-    check_range("--pf-amp", a.pf_amp, -a.pf_mean, a.pf_mean, unit="bar",
-                note="Eq. 22: |A_f| <= P'_f0")
-    ref = Reference(x0=a.x0, amp=a.amp, period=a.period)
-    if a.stiffness is not None:
-        return FeedforwardDesign(ref, stiffness=StiffnessEnvelope(a.stiffness, ref))
-    if a.stiffness_const is not None:
-        return FeedforwardDesign(ref, stiffness=ConstantStiffness(a.stiffness_const))
-    if a.mode is not None:
-        return FeedforwardDesign(ref, flexor=mode_pattern(a.mode, a.period))
-    return FeedforwardDesign(ref, flexor=FlexorPattern(a.pf_mean * BAR, a.pf_amp * BAR, a.period))
+    """The design of the flags, built and checked by the dataclasses a scenario uses; an error
+    names the flag."""
+    check_range("--period", a.period, 0.1, PERIOD_MAX_S, unit="s",
+                note="the analysis integrates one period: its cost grows with T")
+    try:
+        ref = Reference(x0=a.x0, amp=a.amp, period=a.period)
+        inputs = Inputs(pf_mean_bar=a.pf_mean, pf_amp_bar=a.pf_amp, mode=a.mode,
+                        stiffness=a.stiffness, stiffness_const_N_per_m=a.stiffness_const,
+                        p_max_bar=a.p_max)
+    except ValueError as e:
+        msg = str(e)
+        for flag, name in FLAG_FIELDS.items():
+            msg = msg.replace(f"{name}=", f"{flag}=")
+        raise ValueError(msg) from None
+    return inputs.design(ref)
 
 
 def _check_samples(n: int) -> int:
@@ -140,6 +181,7 @@ def show_analyze(o: dict[str, Any]) -> str:
 def cmd_simulate(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.analysis.simulate import simulate
 
+    check_range("--output-dt", a.output_dt, a.dt, 60.0, unit="s", note="at least --dt")
     return simulate(a.scenario, DEFAULT_PARAMS, dt=a.dt, output_dt=a.output_dt).to_json()
 
 
@@ -157,6 +199,7 @@ def show_simulate(o: dict[str, Any]) -> str:
 def cmd_figures(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.figures import make_figures
 
+    check_out_dir("--out", a.out)
     return {"files": [str(p) for p in make_figures(a.out)]}
 
 
@@ -167,32 +210,68 @@ def show_figures(o: dict[str, Any]) -> str:
 def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym import bench
 
-    if not 0.05 <= a.seconds <= 60:
-        raise ValueError(f"--seconds={a.seconds} is outside the allowed range [0.05, 60] s")
+    if a.inference is not None:
+        from agents.inference import benchmark
+
+        if not 100 <= a.actions <= 10_000_000:
+            raise ValueError(f"--actions={a.actions} is outside the allowed range [100, 1e7]")
+        return {"inference": benchmark(a.inference, a.actions, max(100, a.actions // 10),
+                                       emulator=not a.no_emulator)}
+    check_range("--seconds", a.seconds, 0.05, 60.0, unit="s")
+    for n in a.sizes:
+        if not 1 <= n <= 65536:
+            raise ValueError(f"--sizes: {n} is outside the allowed range [1, 65536]")
     return bench.run(a.seconds, tuple(a.sizes))
 
 
 def show_bench(o: dict[str, Any]) -> str:
     from mpa_gym import bench
 
+    if "inference" in o:
+        from agents.inference import show_benchmark
+
+        return show_benchmark(o["inference"])
     return bench.show(o)
 
 
 def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
-    from agents.train import train
+    from agents.train import TrainingStopped, read_eval_history, train, zip_timesteps
 
-    if a.n_timesteps is not None and a.n_timesteps < 1:
-        raise ValueError(f"--n-timesteps={a.n_timesteps} must be >= 1")
-    run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps, progress=not a.no_progress)
-    from stable_baselines3 import PPO
+    if a.n_timesteps is not None and not 1 <= a.n_timesteps <= 10**10:
+        raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, 1e10]")
+    if a.seed is not None and not 0 <= a.seed <= 2**31 - 1:
+        raise ValueError(f"--seed={a.seed} must be in [0, 2147483647]")
+    if a.config is not None and a.resume is not None:
+        raise ValueError("--config and --resume exclude each other: a resumed run keeps the "
+                         "config.yaml of its folder")
+    if a.seed is not None and a.resume is not None:
+        raise ValueError("--seed and --resume exclude each other: a resumed run keeps the seed "
+                         "of its config.yaml")
+    if a.scenario is not None and a.resume is not None:
+        raise ValueError("--scenario and --resume exclude each other: a resumed run keeps the "
+                         "training scenario of its config.yaml")
+    if a.seeds is not None:
+        from agents.seeds import train_seeds
 
-    steps = int(PPO.load(run / "model.zip", device="cpu").num_timesteps)
-    hist = run / "eval" / "evaluations.json"
-    last = json.loads(hist.read_text())[-1] if hist.is_file() else None
-    return {"run_dir": str(run), "timesteps": steps, "last_evaluation": last}
+        if a.seed is not None or a.resume is not None:
+            raise ValueError("--seeds trains new runs; it goes without --seed and --resume")
+        return {"runs": train_seeds(a.seeds, a.config, a.run_dir, a.n_timesteps, a.jobs,
+                                    a.scenario)}
+    try:
+        run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps,
+                    progress=not a.no_progress, scenario=a.scenario)
+    except TrainingStopped as e:
+        code = 128 + e.signum if e.signum is not None else 1
+        raise CommandStopped(None, e.reason, code) from None
+    hist = run / "eval"
+    last = read_eval_history(hist)[0][-1:] if (hist / "evaluations.json").is_file() else []
+    return {"run_dir": str(run), "timesteps": zip_timesteps(run / "model.zip"),
+            "last_evaluation": last[0] if last else None}
 
 
 def show_train(o: dict[str, Any]) -> str:
+    if "runs" in o:
+        return "\n\n".join(show_train(r) for r in o["runs"])
     lines = [f"run folder: {o['run_dir']}  ({o['timesteps']} env steps)"]
     if o["last_evaluation"]:
         lines.append(f"held-out evaluation at {o['last_evaluation']['timesteps']} steps:")
@@ -205,45 +284,146 @@ def show_train(o: dict[str, Any]) -> str:
 def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     from agents.evaluate import HELDOUT_SCENARIOS, PAPER_SCENARIOS, evaluate, write_report
 
+    check_out_dir("--out", a.out)
+    if not 0 <= a.seed <= 2**32 - 1:
+        raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
     scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
-    report = evaluate(a.policy, scenarios, a.seed)
+    report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness)
     paths = write_report(report, a.out)
-    return {"results": json.loads(paths["json"].read_text())["results"],
+    data = json.loads(paths["json"].read_text())
+    return {"results": data["results"], "robustness": data.get("robustness"),
+            "groups": data.get("groups") or {},
             "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
             "plots": str(paths["plots"])}
 
 
 def show_evaluate(o: dict[str, Any]) -> str:
-    res = o["results"]
-    ctrls = list(next(iter(res.values())))
+    res, groups = o["results"], o.get("groups") or {}
+    grouped = {r for g in groups.values() for r in g["runs"]}
+    ctrls = [c for c in next(iter(res.values())) if c not in grouped]
+
+    def iv(a: dict[str, Any], key: str, fmt: str) -> str:
+        lo, hi = a[f"{key}_ci"]
+        return f"{a[key]:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+
     rows = [[sc] + [f"{row[c]['position_rmse_mm']:.3f} / {row[c]['stiffness_rmse_pct']:.1f}"
-                    for c in ctrls] for sc, row in res.items()]
-    return ("position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods\n"
-            + _table(rows, ["scenario", *ctrls])
+                    for c in ctrls]
+            + [f"{iv(g['results'][sc], 'position_rmse_mm', '.3f')} / "
+               f"{iv(g['results'][sc], 'stiffness_rmse_pct', '.1f')}" for g in groups.values()]
+            for sc, row in res.items()]
+    levels = (o.get("robustness") or {}).get("levels") or {}
+    extra = ""
+    if levels:
+        lrows = [[lv] + [("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
+                          + (" unstable" if m["unstable"] else "")) for m in per.values()]
+                 for lv, per in levels.items()]
+        extra = ("\n\nrobustness levels, position RMSE [mm] (grids in the report)\n"
+                 + _table(lrows, ["level", *next(iter(levels.values()))]))
+    head = "position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods"
+    if groups:
+        head += "; several runs of one config: IQM [95 % CI] over the runs"
+    return (head + "\n"
+            + _table(rows, ["scenario", *ctrls,
+                            *(f"{g} ({len(v['runs'])} runs)" for g, v in groups.items())])
+            + extra
             + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
+
+
+def cmd_tune_baselines(a: argparse.Namespace) -> dict[str, Any]:
+    from agents.tune_baselines import DEFAULT_CONFIG, tune
+
+    return {"results": [tune(name, a.config or DEFAULT_CONFIG, a.n_trials, a.n_plants, a.seed)
+                        for name in a.policy]}
+
+
+def show_tune_baselines(o: dict[str, Any]) -> str:
+    lines = []
+    for r in o["results"]:
+        gains = ", ".join(f"{k} = {v:.4g}" for k, v in r["gains"].items())
+        lines.append(f"{r['policy']}: {gains}\n  mean position RMSE "
+                     f"{r['mean_position_rmse_mm']:.3f} mm (defaults: "
+                     f"{r['default_mean_position_rmse_mm']:.3f} mm) over "
+                     f"{r['tuned_on']['n_plants']} training plants of {r['tuned_on']['config']}, "
+                     f"{r['tuned_on']['budget']}")
+    return "\n".join(lines)
+
+
+def cmd_tune(a: argparse.Namespace) -> dict[str, Any]:
+    from agents import tune
+
+    if a.best is not None:
+        if a.out is None:
+            raise ValueError("--best STUDY needs --out FILE.yaml")
+        return tune.write_best(a.storage, a.best, a.out, a.trial)
+    if a.out is not None or a.trial is not None:
+        raise ValueError("--out and --trial go with --best STUDY")
+    return tune.tune(a.config, a.storage, a.study_name, a.n_trials, a.max_total_trials,
+                     a.seeds_per_trial, a.n_timesteps, a.objective, a.heartbeat, a.out_dir,
+                     a.heldout)
+
+
+def show_tune(o: dict[str, Any]) -> str:
+    if "out" in o:
+        return (f"wrote {o['out']}: trial {o['trial']} of {o['study_name']} "
+                f"(values {', '.join(f'{v:.4g}' for v in o['values'])})")
+    lines = [f"study {o['study_name']}: {o['n_trials']} trials "
+             + ", ".join(f"{n} {k.lower()}" for k, n in sorted(o["states"].items()))
+             + f"; {o['by_this_worker']} finished by this worker",
+             f"best trials ({' / '.join(o['objectives'])}):"]
+    for t in o["pareto_front"]:
+        vals = ", ".join(f"{k} {v:.4f}" for k, v in t["values"].items())
+        lines.append(f"  #{t['number']}: {vals}; {t['wall_s']:.0f} s; {t['params']}")
+    return "\n".join(lines)
 
 
 def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.hardware.emulator import Emulator, LinkFaults
-    from mpa_gym.hardware.transport import PtyPair, UDPServer
+    from mpa_gym.hardware.transport import PtyPair, TransportError, UDPServer
 
+    if a.duration is not None:
+        check_range("--duration", a.duration, 0.0, 1e7, low_open=True, unit="s")
+    check_range("--watchdog", a.watchdog, 1e-3, 10.0, unit="s")
+    if not 0 <= a.port <= 65535:
+        raise ValueError(f"--port={a.port} must be in [0, 65535]")
     faults = LinkFaults(latency_s=a.latency, jitter_s=a.jitter, drop_prob=a.drop,
                         late_prob=a.late, corrupt_prob=a.corrupt,
                         position_noise_m=a.position_noise)
-    link = UDPServer(a.host, a.port) if a.udp else PtyPair()
+    try:
+        link = UDPServer(a.host, a.port) if a.udp else PtyPair()
+    except TransportError as e:  # a bad --host / --port: the user's input
+        raise ValueError(f"--host {a.host!r} --port {a.port}: {e}") from None
     where = (f"udp://{link.address[0]}:{link.address[1]}" if a.udp
              else f"serial://{link.slave_path}")
-    print(f"emulating the rig at {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    emu = Emulator(link, a.scenario, faults=faults, watchdog_s=a.watchdog)
     try:
-        emu.run(a.duration)
-    except KeyboardInterrupt:  # Ctrl-C is how an emulator is meant to stop
+        emu = Emulator(link, a.scenario, faults=faults, watchdog_s=a.watchdog)
+    except BaseException:
+        link.close()
+        raise
+    try:  # from the first word on, a signal stops the emulator through the handler below
+        print(f"emulating the rig at {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        if a.realtime:
+            from mpa_gym.hardware.realtime import realtime
+
+            with realtime() as rt:
+                for note in rt["notes"]:
+                    print(f"mpa-gym emulate: {note}", file=sys.stderr, flush=True)
+                emu.run(a.duration)
+        else:
+            emu.run(a.duration)
+    except KeyboardInterrupt as e:  # Ctrl-C is how an emulator is meant to stop (exit 0)
         emu.stop()
+        stopped_by = e
+    else:
+        stopped_by = None
     finally:
         link.close()
     s = emu.stats
-    return {"device": where, "commands": s.commands, "telemetry_sent": s.telemetry_sent,
-            "watchdog_vents": s.watchdog_vents, "corrupt_received": s.corrupt_received}
+    out = {"device": where, "commands": s.commands, "telemetry_sent": s.telemetry_sent,
+           "watchdog_vents": s.watchdog_vents, "corrupt_received": s.corrupt_received}
+    if isinstance(stopped_by, Interrupted):  # SIGTERM: the documented 128 + 15
+        raise CommandStopped(out, f"interrupted by {stopped_by}; emulator stopped",
+                             128 + signal.SIGTERM)
+    return out
 
 
 def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
@@ -256,7 +436,11 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
         from mpa_gym.hardware.transport import UDPServer
 
         link = UDPServer("127.0.0.1", 0)
-        emu = Emulator(link, a.scenario)
+        try:
+            emu = Emulator(link, a.scenario)
+        except BaseException:  # a bad --scenario: close the socket before saying so
+            link.close()
+            raise
         thread = emu.start_thread()
         device = f"udp://127.0.0.1:{link.address[1]}"
     elif device is None:
@@ -266,16 +450,22 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.hardware.transport import TransportError
 
     try:
-        return rollout(a.policy, device, a.log, a.episodes, a.scenario, a.control_hz,
-                       a.episode_s)
+        out = rollout(a.policy, device, a.log, a.episodes, a.scenario, a.control_hz,
+                      a.episode_s, realtime=a.realtime)
     except (HardwareFault, TransportError) as e:  # the rig is vented; the log is on disk
-        print(f"mpa-gym rollout: stopped, rig vented: {e} (log: {a.log})", file=sys.stderr)
-        raise SystemExit(3) from None
+        raise CommandStopped(None, f"STOPPED, rig vented: {e} (log: {a.log})", 3) from None
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        raise CommandStopped(None, f"interrupted by {signal.Signals(signum).name}; rig vented "
+                             f"(log: {a.log})", 128 + signum) from None
     finally:
         if emu is not None:
             emu.stop()
             thread.join(timeout=2.0)
             link.close()
+    if "stopped" in out:
+        raise CommandStopped(out, f"STOPPED, rig vented: {out['stopped']} (log: {a.log})", 3)
+    return out
 
 
 def show_rollout(o: dict[str, Any]) -> str:
@@ -287,10 +477,26 @@ def show_rollout(o: dict[str, Any]) -> str:
                      + (f", STOPPED: {m['fault']}" if "fault" in m else ""))
     t = o["timing"]
     ms = lambda v: "–" if v is None or v != v else f"{v:.3f} ms"  # noqa: E731
-    lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns, p99 jitter "
-                 f"{ms(t['p99_jitter_ms'])}, median command latency "
+    lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns in {t['steps']} steps, "
+                 f"p99 jitter {ms(t['p99_jitter_ms'])}, median command latency "
                  f"{ms(t['median_latency_ms'])}")
+    if t.get("realtime") is not None:
+        rt = t["realtime"]
+        lines.append(f"real-time scheduling: {'SCHED_FIFO' if rt['sched_fifo'] else 'no'}"
+                     + "".join(f"; {n}" for n in rt["notes"]))
     return "\n".join(lines)
+
+
+def cmd_identify(a: argparse.Namespace) -> dict[str, Any]:
+    from agents.identify import identify
+
+    return identify(a.log, a.out, a.scenario, a.plot, a.holdout, session=a.session)
+
+
+def show_identify(o: dict[str, Any]) -> str:
+    from agents.identify import show
+
+    return show(o)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -327,10 +533,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", default=None, metavar="DIR",
                    help="run folder (default runs/<env>-<time>-s<seed>)")
     p.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    p.add_argument("--scenario", default=None, metavar="NAME_OR_YAML",
+                   help="train on this scenario instead of the config's (e.g. the plant of "
+                        "`mpa-gym identify --out`, randomised over its uncertainty)")
     p.add_argument("--resume", default=None, metavar="RUN_DIR",
                    help="continue a run (step count, model, normaliser, evaluations)")
     p.add_argument("--n-timesteps", type=int, default=None, metavar="N",
                    help="env steps to train (default: the config's, or what remains on resume)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                   help="train one run per seed, in parallel processes, into <run-dir>-s<SEED>")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="with --seeds: processes at once (default: the cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
             cmd_evaluate, show_evaluate)
@@ -339,8 +552,54 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenarios", nargs="+", default=None, metavar="NAME_OR_YAML",
                    help="default: the paper's scenarios and the held-out plants")
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")
-    p.add_argument("--seed", type=int, default=1_000_000,
-                   help="episode seed (no training env uses seeds this high)")
+    from agents.config import EVAL_SEED
+
+    p.add_argument("--seed", type=int, default=EVAL_SEED,
+                   help="episode seed (default %(default)s: no training env uses seeds this high)")
+    p.add_argument("--no-robustness", action="store_true",
+                   help="skip the robustness sweep (grids of dead time x load and hysteresis x "
+                        "slider friction, easy/medium/hard levels; ~7 s per controller)")
+    p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
+            "(Optuna TPE, mean position RMSE)", cmd_tune_baselines, show_tune_baselines)
+    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help="PPO config whose training scenario gives the plants "
+                        "(default configs/ppo_residual.yaml)")
+    p.add_argument("--n-trials", type=int, default=80, metavar="N", help="Optuna trials each")
+    p.add_argument("--n-plants", type=int, default=16, metavar="N",
+                   help="plants drawn from the training ranges")
+    p.add_argument("--seed", type=int, default=0, help="plant draws and sampler seed")
+    p = add("tune", "tune hyper-parameters on Optuna; workers sharing --storage and --study-name "
+            "share the study", cmd_tune, show_tune)
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help="base config with its search space in mpa_gym.tune (default "
+                        "configs/ppo_residual.yaml)")
+    p.add_argument("--storage", default="sqlite:///runs/optuna.db", metavar="URL",
+                   help="sqlite:///FILE (default runs/optuna.db), any SQLAlchemy URL "
+                        "(postgresql://USER@HOST:PORT/DB) or journal:FILE (a shared disk)")
+    p.add_argument("--study-name", default="ppo_residual", metavar="NAME")
+    p.add_argument("--n-trials", type=int, default=10, metavar="N",
+                   help="trials this worker runs at most (default 10)")
+    p.add_argument("--max-total-trials", type=int, default=None, metavar="M",
+                   help="cap on the study's trials over all workers")
+    p.add_argument("--seeds-per-trial", type=int, default=1, metavar="S",
+                   help="each trial trains S seeds and averages them (default 1)")
+    p.add_argument("--n-timesteps", type=int, default=None, metavar="T",
+                   help="env steps per seed (default: the config's)")
+    p.add_argument("--objective", choices=["both", "position"], default="both",
+                   help="both: Pareto front of held-out position RMSE and stiffness error, no "
+                        "pruning; position: position RMSE alone, median pruning")
+    p.add_argument("--heartbeat", type=int, default=60, metavar="S",
+                   help="SQL storages: a worker silent for 2 S is dead, its trial FAIL")
+    p.add_argument("--heldout", nargs="+", default=None, metavar="NAME_OR_YAML",
+                   help="scenarios of the objectives (default heldout_a/b/c/bladder)")
+    p.add_argument("--out-dir", default=None, metavar="DIR",
+                   help="trial run folders (default runs/tune/<study>)")
+    p.add_argument("--best", default=None, metavar="STUDY",
+                   help="write the config of STUDY's best trial (with --out) and exit")
+    p.add_argument("--trial", type=int, default=None, metavar="N",
+                   help="with --best: this trial instead of the lowest position RMSE")
+    p.add_argument("--out", default=None, metavar="FILE.yaml", help="with --best")
     p = add("emulate", "play the rig (plant in real time, wire protocol, watchdog) on a pty or UDP",
             cmd_emulate, lambda o: json.dumps(o))
     g = p.add_mutually_exclusive_group(required=True)
@@ -353,39 +612,101 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--watchdog", type=float, default=0.04, metavar="S",
                    help="vent after this long without commands [s] (default 0.04)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
+    p.add_argument("--realtime", action="store_true",
+                   help="real-time (SCHED_FIFO) priority, as a device's firmware has, if "
+                        "permitted")
     for flag, kind in (("--latency", "s"), ("--jitter", "s"), ("--drop", "probability"),
                        ("--late", "probability"), ("--corrupt", "probability"),
                        ("--position-noise", "m")):
         p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
     p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
             cmd_rollout, show_rollout)
-    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb")
+    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb|excite",
+                   help="a run folder, a baseline, or excite: the safe excitation whose log "
+                        "`mpa-gym identify` fits")
     p.add_argument("--device", default=None, metavar="serial:///dev/ttyX|udp://HOST:PORT")
     p.add_argument("--dry-run", action="store_true", help="start an emulator and use it")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
                    help="reference and feedforward design (the plant is the rig)")
     p.add_argument("--episodes", type=int, default=1)
     p.add_argument("--episode-s", type=float, default=None, metavar="S")
-    p.add_argument("--control-hz", type=float, default=100.0, metavar="HZ")
+    from mpa_gym.hardware.env import CONTROL_HZ
+
+    p.add_argument("--control-hz", type=float, default=CONTROL_HZ, metavar="HZ",
+                   help="control rate (default %(default)s; at most 500)")
     p.add_argument("--log", default="runs/rollout.jsonl", metavar="FILE",
                    help="per-step JSON-lines log, written as it happens")
+    p.add_argument("--realtime", action="store_true",
+                   help="real-time (SCHED_FIFO) priority and no garbage collection for the "
+                        "episodes, as far as permitted (the timing report says what was granted)")
+    p = add("identify", "fit the plant (mass, γ, C1, C2, regulator lag and dead time) to a "
+            "rollout log; validate on a held-out stretch", cmd_identify, show_identify)
+    p.add_argument("--log", required=True, metavar="LOG",
+                   help="a rollout log, best of `mpa-gym rollout --policy excite`")
+    p.add_argument("--out", default=None, metavar="FILE.yaml",
+                   help="write a scenario whose plant is the estimate and whose randomize "
+                        "spans ±2 σ (for train, evaluate, emulate --scenario)")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="reference and inputs of the written scenario, and the nominal values "
+                        "the fit starts from (default nominal)")
+    p.add_argument("--plot", default=None, metavar="PNG",
+                   help="logged vs simulated on the held-out stretch (default LOG.identify.png)")
+    p.add_argument("--holdout", type=float, default=0.2, metavar="FRAC",
+                   help="share of the log held out for validation (default 0.2)")
+    p.add_argument("--session", type=int, default=None, metavar="K",
+                   help="which session of the log to fit (index, negative from the end; "
+                        "default the newest)")
     p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
             cmd_bench, show_bench)
     p.add_argument("--seconds", type=float, default=1.0, metavar="S",
                    help="time per measurement [s] (default 1)")
     p.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 4096], metavar="N",
                    help="vector env sizes (default 1 64 1024 4096)")
+    p.add_argument("--inference", default=None, metavar="RUN_DIR",
+                   help="instead: time per action of a trained run, deployed (compiled) path "
+                        "against SB3's predict, with a device emulator in another process")
+    p.add_argument("--actions", type=int, default=20_000, metavar="N",
+                   help="--inference: actions timed on the deployed path (SB3: N/10)")
+    p.add_argument("--no-emulator", action="store_true",
+                   help="--inference: without the emulator process")
     return parser
 
 
+def _terminate(signum: int, frame: Any) -> None:
+    raise Interrupted(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one subcommand. Exit codes: 0 done; 2 bad input (the message names the field, the
+    value and the allowed range); 1 training stopped by its NaN guard; 3 a rollout stopped by a
+    safety check (rig vented); 130 / 143 interrupted by Ctrl-C / SIGTERM (what was reached is
+    saved, the rig vented)."""
     parser = build_parser()
     a = parser.parse_args(argv)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         out = a.run(a)
     except (ValueError, FileNotFoundError) as e:  # bad input: names the field, value and range
         print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
         return 2
+    except CommandStopped as e:
+        if e.out is not None:
+            print(json.dumps(e.out) if a.json else a.show(e.out), flush=True)
+        print(f"mpa-gym {a.command}: {e.message}", file=sys.stderr)
+        return e.code
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        print(f"mpa-gym {a.command}: interrupted by {signal.Signals(signum).name}",
+              file=sys.stderr)
+        return 128 + signum
+    except OSError as e:  # the machine's side (disk full, permissions): one line, no traceback
+        print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     print(json.dumps(out) if a.json else a.show(out))
     return 0
 

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
+from collections.abc import Iterator
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -22,3 +27,35 @@ def central_diff(f, x, h):
     """Fourth-order (five-point) central difference: truncation O(h⁴ f⁽⁵⁾), round-off
     O(eps |f| / h); with the steps used in the tests both are below 1e-8 relative."""
     return (f(x - 2 * h) - 8 * f(x - h) + 8 * f(x + h) - f(x + 2 * h)) / (12.0 * h)
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a child process a test interrupts: a job a non-interactive shell
+    starts in the background inherits SIGINT ignored, and Python then never raises
+    KeyboardInterrupt; the child gets the default back, as a terminal's process has it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@contextlib.contextmanager
+def serving(kind: str = "udp", scenario: Any = "nominal", **kw: Any
+            ) -> Iterator[tuple[str, Any]]:
+    """(device URL, emulator): the device emulator serving in a thread on a UDP loopback port
+    or a pseudo-terminal, stopped and its link closed on the way out."""
+    from mpa_gym.hardware.emulator import Emulator
+    from mpa_gym.hardware.transport import PtyPair, UDPServer
+
+    link = UDPServer("127.0.0.1", 0) if kind == "udp" else PtyPair()
+    url = (f"udp://127.0.0.1:{link.address[1]}" if kind == "udp"
+           else f"serial://{link.slave_path}")
+    try:
+        emu = Emulator(link, scenario, **kw)
+    except BaseException:
+        link.close()
+        raise
+    thread = emu.start_thread()
+    try:
+        yield url, emu
+    finally:
+        emu.stop()
+        thread.join(timeout=2.0)
+        link.close()

@@ -92,3 +92,20 @@ def test_command_runs_as_a_process(how):
     cmd = [exe] if how == "console_script" else [sys.executable, "-m", "mpa_gym.cli"]
     r = subprocess.run([*cmd, "analyze", "--json"], capture_output=True, text=True, check=True)
     assert json.loads(r.stdout)["stable"] is True
+
+
+def test_emulate_stops_on_sigterm_with_the_documented_exit_code():
+    """Ctrl-C is how an emulator is meant to stop (exit 0); SIGTERM exits 128 + 15 like every
+    other command, after printing what it served."""
+    import re
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--port",
+                             "0", "--duration", "60", "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert re.search(r"udp://\S+", proc.stderr.readline())
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 143, err
+    assert "interrupted by SIGTERM" in err and "Traceback" not in err
+    assert "commands" in json.loads(out)
