@@ -31,6 +31,7 @@ import mpa_gym  # noqa: F401
 from agents.baselines import BASELINES, Policy, stack
 from agents.config import EVAL_SEED
 from agents.policies import load_policy
+from agents.seeds import group_runs, require_stats
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.task.contract import SAFETY_CLIPPED
@@ -213,6 +214,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     results: dict[str, dict[str, Any]] = {}
     traces: dict[str, dict[str, Trace]] = {}
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
+    if group_runs(policies):
+        require_stats()
     learned = {spec: load_policy(spec) for spec in policies if spec not in BASELINES}
     # a baseline is built for its scenario's plan; batched, one stack of them per baseline
     own = {spec: [load_policy(spec, {"scenario": sc})[0] for sc in loaded]
@@ -257,16 +260,10 @@ def seed_groups(policies: list[str], results: dict[str, Any]) -> dict[str, Any]:
     metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate learning
     curves (:mod:`agents.seeds`). A lone run of its config is a group of one, without interval.
     """
-    from agents.seeds import aggregate, config_key, group_label, learning_curves
+    from agents.seeds import aggregate, group_label, learning_curves
 
-    by_cfg: dict[str, list[str]] = {}
-    for spec in policies:
-        if Path(spec).is_dir():
-            by_cfg.setdefault(config_key(spec), []).append(spec)
     out: dict[str, Any] = {}
-    for runs in by_cfg.values():
-        if len(runs) < 2:
-            continue
+    for runs in group_runs(policies):
         label = group_label(runs)
         out[label] = {"runs": [_label(r) for r in runs], "results": aggregate(results, runs),
                       "curves": learning_curves(runs)}

@@ -89,6 +89,26 @@ def config_key(run: str | Path) -> str:
     return json.dumps(data, sort_keys=True, default=str)
 
 
+def group_runs(policies: list[str]) -> list[list[str]]:
+    """The run folders among ``policies`` grouped by config (:func:`config_key`); groups of
+    two or more runs only (a lone run of its config has no interval)."""
+    by_cfg: dict[str, list[str]] = {}
+    for spec in policies:
+        if Path(spec).is_dir():
+            by_cfg.setdefault(config_key(spec), []).append(spec)
+    return [runs for runs in by_cfg.values() if len(runs) > 1]
+
+
+def require_stats() -> None:
+    """Raise a clear error, before any work, when ``rliable`` (the ``stats`` extra) is absent."""
+    try:
+        import rliable  # noqa: F401
+    except ImportError:
+        raise ValueError("--policy: several runs of one config are aggregated with intervals "
+                         "by the rliable library, which is not installed (the stats extra): "
+                         "pip install -c constraints.txt -e \".[stats]\"") from None
+
+
 def group_label(runs: list[str]) -> str:
     """``name`` for runs ``name-s0``, ``name-s1``, … (else the first folder's name + ``…``)."""
     names = [Path(r).name for r in runs]

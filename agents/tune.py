@@ -257,6 +257,13 @@ def open_storage(url: str, heartbeat_s: int = 60) -> optuna.storages.BaseStorage
     given = url
     if url.startswith("postgresql://"):  # SQLAlchemy 2.1 defaults to psycopg 3; we ship psycopg2
         url = "postgresql+psycopg2://" + url[len("postgresql://"):]
+    if url.startswith("postgresql+psycopg2://"):
+        try:
+            import psycopg2  # noqa: F401
+        except ImportError:
+            raise ValueError(f"--storage={given!r}: PostgreSQL needs the psycopg2 driver (the "
+                             "postgres extra): pip install -c constraints.txt -e "
+                             "\".[postgres]\"") from None
     if url.startswith("sqlite:///"):
         Path(url[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
     from sqlalchemy.exc import IntegrityError, ProgrammingError

@@ -248,6 +248,12 @@ def test_two_workers_share_a_postgresql_study_up_to_the_cap(tmp_path, postgres):
     assert sum(s["by_this_worker"] for s in summaries) == cap
 
 
+def test_postgresql_without_its_driver_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "psycopg2", None)  # import psycopg2 raises ImportError
+    with pytest.raises(ValueError, match=r"postgresql://u@127.0.0.1:9/db.*postgres extra"):
+        open_storage("postgresql://u@127.0.0.1:9/db")
+
+
 def test_journal_file_storage(tmp_path):
     cfg = tiny_tune_config(tmp_path / "c.yaml")
     held = short_heldout(tmp_path / "h.yaml")
@@ -278,7 +284,8 @@ def test_iqm_and_ci_match_an_independent_trimmed_mean():
     assert np.all(ci_many[1] - ci_many[0] < ci[1] - ci[0])
 
 
-def test_train_seeds_makes_sibling_runs_that_evaluate_as_one_group(tmp_path):
+def test_train_seeds_makes_sibling_runs_that_evaluate_as_one_group(tmp_path, monkeypatch,
+                                                                    capsys):
     cfg = tiny_tune_config(tmp_path / "c.yaml")
     assert main(["train", "--config", str(cfg), "--seeds", "3", "4", "--run-dir",
                  str(tmp_path / "r"), "--n-timesteps", "128", "--json"]) == 0
@@ -287,6 +294,13 @@ def test_train_seeds_makes_sibling_runs_that_evaluate_as_one_group(tmp_path):
         assert yaml.safe_load((r / "config.yaml").read_text())["mpa_gym"]["seed"] == seed
         assert (r / "model.zip").is_file()
     held = short_heldout(tmp_path / "h.yaml")
+    # without the stats extra: refused before any episode, naming the extra
+    with monkeypatch.context() as m:
+        m.setitem(sys.modules, "rliable", None)  # import rliable raises ImportError
+        assert main(["evaluate", "--policy", *map(str, runs), "ff", "--scenarios", str(held),
+                     "--out", str(tmp_path / "rep"), "--json"]) == 2
+    assert "stats" in capsys.readouterr().err
+    assert not (tmp_path / "rep" / "report.json").exists()
     assert main(["evaluate", "--policy", *map(str, runs), "ff", "--scenarios", str(held),
                  "--out", str(tmp_path / "rep"), "--json"]) == 0
     rep = json.loads((tmp_path / "rep" / "report.json").read_text())
