@@ -37,6 +37,7 @@ from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
+from mpa_gym.task.contract import OBS_KREF_SCALE, obs_names
 from mpa_gym.task.contract import OBS_SIN as OSIN
 from mpa_gym.task.contract import OBS_V as OV
 from mpa_gym.task.contract import OBS_VREF as OVR
@@ -132,9 +133,9 @@ def _batch(observation: np.ndarray) -> tuple[np.ndarray, bool]:
     obs = np.asarray(observation, dtype=np.float64)
     single = obs.ndim == 1
     obs = obs.reshape(1, -1) if single else obs
-    if obs.shape[1] != 9:
+    if obs.shape[1] != (n := len(obs_names(residual=True))):
         raise ValueError(f"observation has {obs.shape[1]} entries; these controllers need "
-                         "MPALegResidual-v0's 9")
+                         f"MPALegResidual-v0's {n}")
     return obs, single
 
 
@@ -197,7 +198,7 @@ class StiffnessFeedback(_PlanPolicy):
         a_ref = -omega**2 * (obs[:, OXR] - self._per_row(n, lambda p: p.design.reference.x0))
         p = self.params
         f_star = p.leg.m * (a_ref + p.leg.g) + correction
-        k_star = obs[:, OK] * 1000.0
+        k_star = obs[:, OK] * OBS_KREF_SCALE
         with np.errstate(invalid="ignore"):
             c = affine_in_pressures(x, v, p)
         A = c.J

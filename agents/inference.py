@@ -26,6 +26,7 @@ from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
+from mpa_gym.task.contract import OBS_KREF_SCALE
 from mpa_gym.task.contract import OBS_PE as OPE
 from mpa_gym.task.contract import OBS_PF as OPF
 from mpa_gym.task.contract import OBS_SIN as OSIN
@@ -145,7 +146,7 @@ def _forward(raw, integ, prev, fresh, spec_i, spec_f, mean, inv_std, clip_obs, w
         out[k] = min(max(out[k], a_low[k]), a_high[k])
     if fs[0] > 0.0:  # ForceStiffnessAction: (a_F, a_k) → residual (a_e, a_f) on the nominal model
         x = raw[OXR]
-        k_ref = raw[OK] * 1000.0
+        k_ref = raw[OK] * OBS_KREF_SCALE
         F0, k0 = fast.force_and_stiffness(x, 0.0, 0.0, 0.0, consts)
         Fe, ke = fast.force_and_stiffness(x, 0.0, BAR, 0.0, consts)
         Ff, kf = fast.force_and_stiffness(x, 0.0, 0.0, BAR, consts)

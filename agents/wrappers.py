@@ -65,6 +65,7 @@ from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
+from mpa_gym.task.contract import OBS_KREF_SCALE, check_action
 from mpa_gym.task.contract import OBS_PE as OPE
 from mpa_gym.task.contract import OBS_PF as OPF
 from mpa_gym.task.contract import OBS_SIN as OSIN
@@ -72,7 +73,6 @@ from mpa_gym.task.contract import OBS_V as OV
 from mpa_gym.task.contract import OBS_VREF as OVR
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
-from mpa_gym.task.contract import check_action
 
 MAX_HARMONICS = 5
 
@@ -295,9 +295,9 @@ def force_stiffness_to_residual(action: np.ndarray, obs: np.ndarray, force_N: fl
     a = np.asarray(action, dtype=np.float64).reshape(-1, 2)
     out = np.empty((a.shape[0], 2))
     _force_stiffness_kernel(a, np.asarray(obs[:, OXR], dtype=np.float64),
-                            np.asarray(obs[:, OK], dtype=np.float64) * 1000.0, float(force_N),
-                            float(stiffness_rel), float(scale_bar) * BAR, _constants(params),
-                            out)
+                            np.asarray(obs[:, OK], dtype=np.float64) * OBS_KREF_SCALE,
+                            float(force_N), float(stiffness_rel), float(scale_bar) * BAR,
+                            _constants(params), out)
     return out.astype(np.float32)
 
 

@@ -70,6 +70,18 @@ def test_a_column_added_to_the_contract_appears_in_the_sim_envs(monkeypatch, res
         if terminated:  # random pressures may push the leg past a bound: still observed
             break
         assert env.observation_space.contains(obs)
+    if residual:  # the classical controllers read the contract's columns, the new ones too
+        from agents.policies import load_policy
+
+        pid = load_policy("pid", {"scenario": "impulse", "task": TASK})[0]
+        obs, info = env.reset(seed=0)
+        state, start = None, np.ones(1, dtype=bool)
+        for _ in range(5):
+            action, state = pid.predict(obs, state, start, deterministic=True)
+            start = np.zeros(1, dtype=bool)
+            obs, _, terminated, _, info = env.step(action)
+            assert not terminated
+            check_dummies(obs, info, residual)
     venv = gym.make_vec(env_id, num_envs=3, vectorization_mode="vector_entry_point",
                         scenario="impulse", task=TASK)
     vobs, vinfo = venv.reset(seed=0)

@@ -134,6 +134,8 @@ RESIDUAL_OBS_NAMES = obs_names(True)
 (OBS_X, OBS_V, OBS_XREF, OBS_VREF, OBS_SIN, OBS_COS, OBS_PE, OBS_PF, OBS_KREF) = (
     obs_index(name) for name in ("x_m", "v_mps", "x_ref_m", "v_ref_mps", "sin_phase",
                                  "cos_phase", "pe_bar", "pf_bar", "k_ref_kN_per_m"))
+# [N/m] per unit of the k̂ column (the observation carries kN/m)
+OBS_KREF_SCALE = obs_columns(True)[OBS_KREF].divisor
 
 # --------------------------------------------------------------------------- step output
 # What the step computes per leg: safe command (2), true k, reward and its three terms, safety
