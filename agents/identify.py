@@ -105,7 +105,13 @@ class Session:
     steps: list[dict[str, Any]]
 
 
-def read_sessions(path: str | Path) -> list[Session]:
+class Sessions(list):  # type: ignore[type-arg]
+    """The sessions of a rollout log; ``skipped``: its torn lines (``read_log``) left out."""
+
+    skipped: int = 0
+
+
+def read_sessions(path: str | Path) -> Sessions:
     """The sessions of a rollout log, oldest first. ``agents.rollout`` appends to its log and
     starts each session with a header, and episodes are numbered from 0 in each: the header,
     not the episode number, is where one session's steps end and the next one's begin."""
@@ -114,11 +120,13 @@ def read_sessions(path: str | Path) -> list[Session]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--log {path}: no such file")
-    out: list[Session] = []
+    out = Sessions()
     header: dict[str, Any] | None = None
     steps: list[dict[str, Any]] = []
     started = False  # records (of any kind) before the first header make a session too
-    for r in read_log(path):
+    records = read_log(path)
+    out.skipped = records.skipped
+    for r in records:
         if r.get("event") == "session":
             if started:
                 out.append(Session(header, steps))
@@ -464,6 +472,10 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
                   "uncertainties are 1 σ of the Gauss-Newton covariance (lower bounds: the "
                   "residuals are correlated in time)", *reg_notes],
     }
+    report["skipped_lines"] = sessions.skipped
+    if sessions.skipped:
+        report["notes"].insert(0, f"{sessions.skipped} torn line(s) of the log skipped (a "
+                               "rollout killed mid-write)")
     if len(sessions) > 1:
         report["notes"].insert(0, f"the log holds {len(sessions)} sessions; fitted session "
                                f"{index} ({_describe(chosen)}), the others left out")
@@ -561,5 +573,5 @@ def show(o: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["LogData", "Session", "identify", "load_log", "read_sessions", "simulate_pressure",
-           "simulate_segments"]
+__all__ = ["LogData", "Session", "Sessions", "identify", "load_log", "read_sessions",
+           "simulate_pressure", "simulate_segments"]

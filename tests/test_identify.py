@@ -175,6 +175,7 @@ def test_an_appended_log_fits_its_newest_session_alone(rig_log, tmp_path):
     header = {"event": "session", "policy": "pid", "control_hz": 100.0, "episodes": 1}
     both = tmp_path / "appended.jsonl"
     both.write_text(json.dumps(header) + "\n" + "".join(json.dumps(r) + "\n" for r in other)
+                    + '{"episode": 0, "t_s": 2.0, "x_m": 0.8\n'  # the pid session killed mid-write
                     + rig_log.read_text())
     alone = identify(rig_log, plot=tmp_path / "alone.png")
     r = identify(both, plot=tmp_path / "both.png")
@@ -183,6 +184,8 @@ def test_an_appended_log_fits_its_newest_session_alone(rig_log, tmp_path):
     assert r["validation_rmse_m"] == alone["validation_rmse_m"]
     assert r["session"]["index"] == 1 and r["session"]["sessions"] == 2
     assert r["session"]["policy"] == "excite" and "the log holds 2 sessions" in r["notes"][0]
+    assert r["skipped_lines"] == 1 and "1 torn line(s) of the log skipped" in r["notes"][1]
+    assert alone["skipped_lines"] == 0
     # an explicit session: the pid one (2 s) is too short to fit; an index out of range
     assert identify(both, plot=tmp_path / "b1.png", session=-1)["plant"] == alone["plant"]
     with pytest.raises(ValueError, match="too short to fit and validate"):
@@ -208,8 +211,10 @@ def test_sessions_split_at_their_headers(tmp_path):
                    + lines([*steps(5, 0.02, 0.81), {"event": "stopped", "fault": "x"}])
                    + lines([{"event": "session", "control_hz": 200.0}])
                    + lines(steps(6, 0.005, 0.82))
-                   + lines([{"event": "session", "control_hz": 100.0}]))  # stopped in pre-flight
+                   + lines([{"event": "session", "control_hz": 100.0}])  # stopped in pre-flight
+                   + '{"episode": 0, "t_s": 0.0, "x_m"\n')  # torn by a kill mid-write
     sessions = read_sessions(log)
+    assert sessions.skipped == 1
     assert [s.header and s.header["control_hz"] for s in sessions] == [None, 50.0, 200.0, 100.0]
     assert [len(s.steps) for s in sessions] == [4, 5, 6, 0]
     newest = load_log(log)  # the newest session with steps
