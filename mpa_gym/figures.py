@@ -25,13 +25,12 @@ from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.analysis.scenario import Inputs, load_scenario
 from mpa_gym.analysis.simulate import SimulationResult, simulate
 from mpa_gym.design import (
     FeedforwardDesign,
     Reference,
     StiffnessEnvelope,
-    mode_pattern,
     stiffness_sweep,
 )
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
@@ -205,8 +204,7 @@ def make_figures(out_dir: str | Path, params: Params = DEFAULT_PARAMS) -> list[P
         out / "fig03_inputs_pf_const.png")]
     paths += [_fig4(letter, scenario, params, out) for letter, scenario in FIG4.items()]
     for mode, letter in ((1, "a"), (2, "b"), (3, "c")):
-        design = FeedforwardDesign(REFERENCE, flexor=mode_pattern(mode, REFERENCE.period),
-                                   params=params)
+        design = Inputs(mode=mode).design(REFERENCE, params)
         paths.append(_pressure_figure(
             [(design, f"Fig. 8({letter}) simulated: mode {mode} of Table 1")],
             out / f"fig08{letter}_mode{mode}.png"))

@@ -22,7 +22,7 @@ from mpa_gym.design.feedforward import (
     FeedforwardDesign,
     StiffnessEnvelope,
 )
-from mpa_gym.design.reference import MODES, FlexorPattern, Reference
+from mpa_gym.design.reference import MODES, FlexorPattern, Reference, mode_pattern
 from mpa_gym.files import read_yaml
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 
@@ -94,11 +94,10 @@ class Inputs:
         if self.stiffness_const_N_per_m is not None:
             return FeedforwardDesign(reference, stiffness=ConstantStiffness(
                 self.stiffness_const_N_per_m), params=params)
-        mean, amp = MODES[self.mode] if self.mode is not None else (self.pf_mean_bar,
-                                                                     self.pf_amp_bar)
-        return FeedforwardDesign(reference, flexor=FlexorPattern(mean * BAR, amp * BAR,
-                                                                 reference.period),
-                                 params=params)
+        flexor = (mode_pattern(self.mode, reference.period) if self.mode is not None
+                  else FlexorPattern(self.pf_mean_bar * BAR, self.pf_amp_bar * BAR,
+                                     reference.period))
+        return FeedforwardDesign(reference, flexor=flexor, params=params)
 
 
 @dataclass(frozen=True)
