@@ -23,16 +23,23 @@ OTHER = dataclasses.replace(P, mpa=dataclasses.replace(P.mpa, C1=150e3, C2=3e3, 
                             leg=dataclasses.replace(P.leg, m=4.5))
 
 
-def test_force_and_stiffness_equal_the_reference_model():
-    for params in (P, OTHER):
-        c = fast.pack(params)
-        ref = force_terms(XS, VS, PE, PF, params)
-        got = np.array([fast.force_and_stiffness(x, v, pe, pf, c)
-                        for x, v, pe, pf in zip(XS, VS, PE, PF, strict=True)])
-        # same formulas in another order of operations: agreement to rounding (1e-12 relative
-        # to the magnitude of the terms that are summed)
-        assert_allclose(got[:, 0], ref.F, rtol=1e-12, atol=1e-9)
-        assert_allclose(got[:, 1], -ref.dF_dX, rtol=1e-11, atol=1e-7)
+# the plant effects on (braid friction, slider friction, regulator dead time and slew)
+EFFECTS = dataclasses.replace(
+    OTHER, mpa=dataclasses.replace(OTHER.mpa, friction=0.04),
+    leg=dataclasses.replace(OTHER.leg, friction_coulomb=1.5, friction_viscous=4.0),
+    regulator=RegulatorParams(lag=0.03, dead_time=0.025, slew=20e5))
+
+
+@pytest.mark.parametrize("params", [P, OTHER, EFFECTS], ids=["paper", "other", "effects"])
+def test_force_and_stiffness_equal_the_reference_model(params):
+    c = fast.pack(params)
+    ref = force_terms(XS, VS, PE, PF, params)
+    got = np.array([fast.force_and_stiffness(x, v, pe, pf, c)
+                    for x, v, pe, pf in zip(XS, VS, PE, PF, strict=True)])
+    # same formulas in another order of operations: agreement to rounding (1e-12 relative
+    # to the magnitude of the terms that are summed)
+    assert_allclose(got[:, 0], ref.F, rtol=1e-12, atol=1e-9)
+    assert_allclose(got[:, 1], -ref.dF_dX, rtol=1e-11, atol=1e-7)
 
 
 def test_outside_domain_is_nan():
@@ -68,19 +75,6 @@ def test_plant_step_is_rk4_of_the_reference_ode():
 
 
 # ----------------------------------------------------------------------------- plant effects
-EFFECTS = dataclasses.replace(
-    OTHER, mpa=dataclasses.replace(OTHER.mpa, friction=0.04),
-    leg=dataclasses.replace(OTHER.leg, friction_coulomb=1.5, friction_viscous=4.0),
-    regulator=RegulatorParams(lag=0.03, dead_time=0.025, slew=20e5))
-
-
-def test_force_and_stiffness_with_braid_friction_equal_the_reference_model():
-    c = fast.pack(EFFECTS)
-    ref = force_terms(XS, VS, PE, PF, EFFECTS)
-    got = np.array([fast.force_and_stiffness(x, v, pe, pf, c)
-                    for x, v, pe, pf in zip(XS, VS, PE, PF, strict=True)])
-    assert_allclose(got[:, 0], ref.F, rtol=1e-12, atol=1e-9)
-    assert_allclose(got[:, 1], -ref.dF_dX, rtol=1e-11, atol=1e-7)
 
 
 @pytest.mark.parametrize("lag,slew", [(0.03, 20e5), (0.03, 0.0), (0.0, 20e5), (0.0, 0.0)])
