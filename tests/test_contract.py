@@ -12,6 +12,7 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import REALTIME
 
 import mpa_gym
 from mpa_gym.hardware.env import HardwareLegEnv
@@ -91,6 +92,7 @@ def test_a_column_added_to_the_contract_appears_in_the_sim_envs(monkeypatch, res
             check_dummies(vobs[k], {"x_ref_m": vinfo["x_ref_m"][k]}, residual)
 
 
+@REALTIME
 def test_a_column_added_to_the_contract_appears_on_the_rig(monkeypatch, emulator_url):
     monkeypatch.setattr(contract, "OBS_COLUMNS", (*contract.OBS_COLUMNS, *DUMMIES))
     # stale_s relaxed: a scheduling hiccup of the shared test machine must not stop the episode
@@ -105,6 +107,7 @@ def test_a_column_added_to_the_contract_appears_on_the_rig(monkeypatch, emulator
             check_dummies(obs, info, True)
 
 
+@REALTIME
 def test_every_env_fills_the_same_info_keys(emulator_url):
     env = gym.make("MPALegResidual-v0", task=TASK)
     env.reset(seed=0)

@@ -11,13 +11,15 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
-from conftest import serving
+from conftest import REALTIME, serving
 
 import mpa_gym  # noqa: F401
 from agents.rollout import read_log
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.emulator import LinkFaults
 from mpa_gym.hardware.env import HardwareLegEnv
+
+pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
 
 TASK = {"episode_s": 1.0}
 

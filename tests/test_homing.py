@@ -8,6 +8,7 @@ import time
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import REALTIME
 
 import mpa_gym  # noqa: F401
 from mpa_gym.hardware import protocol as proto
@@ -19,6 +20,8 @@ from mpa_gym.model.params import BAR, DEFAULT_PARAMS
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.homing import HomingConfig, HomingController, HomingError, vented_rest
 from mpa_gym.task.plan import make_plan
+
+pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
 
 TASK = {"episode_s": 1.0}
 C1 = DEFAULT_PARAMS.mpa.C1

@@ -13,6 +13,7 @@ import sys
 import gymnasium as gym
 import numpy as np
 import pytest
+from conftest import REALTIME
 
 import agents.rollout
 import mpa_gym  # noqa: F401
@@ -43,9 +44,10 @@ RIG = {"extra_mass_kg": 0.6, "C1_Pa": 0.9 * C1, "C2_Pa": 2500.0, "gamma_Ns_per_m
 TOTAL_MASS = DEFAULT_PARAMS.leg.m + 0.6
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def rig_log(tmp_path_factory):
-    """A 20 s excitation rollout of the emulator, in its own process, playing RIG."""
+    """A 20 s excitation rollout of the emulator, in its own process, playing RIG: recorded anew
+    for each test, so that a rerun (conftest.REALTIME) fits a fresh log."""
     log = tmp_path_factory.mktemp("identify") / "excite.jsonl"
     with EmulatorProcess({"name": "rig", "duration_s": 30.0, "plant": RIG},
                          ("--watchdog", "0.5")) as emu, pytest.MonkeyPatch.context() as mp:
@@ -68,6 +70,7 @@ def check_estimate(plant, true_mass, true_c1, true_lag, true_dead):
     assert abs(plant["pressure_dead_time_s"] - true_dead) <= 0.010, plant  # 10 ms
 
 
+@REALTIME
 def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
     out = tmp_path / "rig_id.yaml"
     r = identify(rig_log, out=out, plot=tmp_path / "fit.png")
@@ -110,6 +113,7 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
         "braid_friction_ratio", "slider_friction_N", "slider_viscous_Ns_per_m"}
 
 
+@REALTIME
 def test_identify_cli_json_and_bad_input(rig_log, tmp_path):
     out = tmp_path / "cli.yaml"
     p = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "identify", "--log", str(rig_log),
@@ -168,6 +172,7 @@ def test_identify_recovers_dead_time_and_mass_from_sim_logs(tmp_path, plant):
     assert r["validation_rmse_m"] <= 1e-3
 
 
+@REALTIME
 def test_an_appended_log_fits_its_newest_session_alone(rig_log, tmp_path):
     """rollout appends to its log: a pid session on another plant, then the excitation session
     (episode 0 in both). The fit is the excitation session's, exactly as from its own log."""

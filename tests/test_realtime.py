@@ -9,12 +9,15 @@ import time
 
 import numpy as np
 import pytest
+from conftest import REALTIME
 
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.emulator import Emulator, LinkFaults
 from mpa_gym.hardware.env import HardwareLegEnv
 from mpa_gym.hardware.realtime import realtime
 from mpa_gym.hardware.transport import UDPServer
+
+pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
 
 TASK = {"episode_s": 2.0}
 # stale_s relaxed to 0.2 s, as in test_hardware.py and test_rollout_safety.py: every wait below is

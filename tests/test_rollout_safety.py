@@ -14,13 +14,15 @@ import time
 
 import pytest
 import yaml
-from conftest import default_sigint, serving
+from conftest import REALTIME, default_sigint, serving
 
 from agents.policies import load_policy
 from agents.rollout import read_log, rollout
 from agents.train import train
 from mpa_gym.cli import main
 from mpa_gym.hardware.env import HardwareLegEnv
+
+pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
 
 
 def _wait_for_steps(log, n, timeout=60.0, proc=None):
