@@ -214,7 +214,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     results: dict[str, dict[str, Any]] = {}
     traces: dict[str, dict[str, Trace]] = {}
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
-    if group_runs(policies):
+    groups = group_runs(policies)  # several runs of one config: checked before any episode
+    if groups:
         require_stats()
     learned = {spec: load_policy(spec) for spec in policies if spec not in BASELINES}
     # a baseline is built for its scenario's plan; batched, one stack of them per baseline
@@ -247,7 +248,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     report = {"results": results, "traces": traces, "seed": seed,
               "learning": learning_speed(policies, results),
               "controllers": {_label(p): tuned_on(p) for p in policies},
-              "groups": seed_groups(policies, results)}
+              "groups": seed_groups(groups, results)}
     if robustness:
         from agents.robustness import robustness as sweep
 
@@ -255,15 +256,14 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     return report
 
 
-def seed_groups(policies: list[str], results: dict[str, Any]) -> dict[str, Any]:
-    """Run folders of one config (several seeds) as groups: per scenario the IQM of each
-    metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate learning
-    curves (:mod:`agents.seeds`). A lone run of its config is a group of one, without interval.
-    """
+def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:
+    """The groups of run folders of one config (``agents.seeds.group_runs``): per scenario the
+    IQM of each metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate
+    learning curves (:mod:`agents.seeds`). A lone run of its config is in no group."""
     from agents.seeds import aggregate, group_label, learning_curves
 
     out: dict[str, Any] = {}
-    for runs in group_runs(policies):
+    for runs in groups:
         label = group_label(runs)
         out[label] = {"runs": [_label(r) for r in runs], "results": aggregate(results, runs),
                       "curves": learning_curves(runs)}
