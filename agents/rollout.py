@@ -1,7 +1,9 @@
 """Roll a controller out on the rig: `mpa-gym rollout --policy P --device URL [--dry-run]`.
 
 Pre-flight (link, sensor sanity, low-pressure test), then the episodes. The log is JSON lines,
-appended to and flushed step by step, so a killed process leaves it readable up to its last step.
+appended to and flushed step by step, so a killed process leaves it readable up to its last step
+but one: a step's record is written in the slack of the next control period, right after that
+period's command went out (``HardwareLegEnv.defer``), so the write never delays a command.
 Each session (one ``rollout`` call) starts with a ``{"event": "session", ...}`` header naming its
 policy, scenario and rate, so sessions appended to one file stay apart; ``read_log`` skips a torn
 line (a kill mid-write) and goes on, and says how many it skipped.
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime
+import functools
 import json
 import math
 import os
@@ -165,18 +168,18 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             for ep in range(episodes):
                 obs, info = env.reset(seed=seed + ep)
                 state, start = None, np.array([True])
-                rows = []
+                rows: list[dict[str, Any]] = []
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])
                     obs, r, term, trunc, info = env.step(action)
-                    rec = {"episode": ep, "reward": r, "terminated": term,
-                           **{k: (v.tolist() if isinstance(v, np.ndarray) else v)
-                              for k, v in info.items()}}
-                    f.write(json.dumps(rec, allow_nan=True) + "\n")  # line-buffered: one write
-                    rows.append(rec)
+                    # the record is written in the slack of the next period, after its command
+                    # went out (env.defer), not between this telemetry and that command
+                    record = functools.partial(_log_step, f, rows, ep, r, term, info)
                     if term or trunc:
+                        record()
                         break
+                    env.defer(record)
                 os.fsync(f.fileno())
                 results.append(_episode_metrics(rows, env))
                 if term:  # a safety stop: the rig is vented, the session ends here
@@ -205,6 +208,16 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
     if stopped is not None:
         out["stopped"] = stopped
     return out
+
+
+def _log_step(f: IO[str], rows: list[dict[str, Any]], episode: int, reward: float,
+              terminated: bool, info: dict[str, Any]) -> None:
+    """One step's record, appended to the log (line-buffered: one write, no sync) and to
+    ``rows``."""
+    rec = {"episode": episode, "reward": reward, "terminated": terminated,
+           **{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in info.items()}}
+    f.write(json.dumps(rec, allow_nan=True) + "\n")
+    rows.append(rec)
 
 
 def _write(f: IO[str], rec: dict[str, Any]) -> None:

@@ -96,6 +96,43 @@ def test_late_telemetry_is_waited_for_then_stops_when_stale(rig):
         emu._handle = handle
 
 
+def test_deferred_work_runs_after_the_command_went_out_once_and_in_order(rig):
+    """``defer`` moves work (the rollout's log write) off the path from telemetry to command:
+    it runs inside the next step, after that step's command reached the link, and a failing
+    step (which vents) or ``close`` still runs what is pending."""
+    url, _emu = rig
+    seen: list[tuple[str, int]] = []
+    with HardwareLegEnv(url, task=TASK, stale_s=STALE_S) as hw:
+        hw.reset(seed=0)
+        hw.step(np.zeros(2))
+        for tag in ("a", "b"):  # both run in the next step, in order, each with the seq then
+            hw.defer(lambda tag=tag: seen.append((tag, hw._seq)))
+        assert seen == []  # nothing runs when handed over
+        sent_before = hw._seq
+        hw.step(np.zeros(2))
+        # the next step's command had been sent (its seq taken) before the work ran
+        assert seen == [("a", sent_before + 1), ("b", sent_before + 1)]
+        hw.step(np.zeros(2))
+        assert len(seen) == 2  # once only
+        hw.defer(lambda: seen.append(("c", hw._seq)))
+        with pytest.raises(ValueError, match="must be finite"):  # refused before any command
+            hw.step(np.array([np.nan, 0.0]))
+        assert len(seen) == 2  # still pending: the episode goes on
+        hw.step(np.zeros(2))
+        assert seen[-1][0] == "c"
+
+        def fail(*_):
+            raise OSError("link down")
+        hw.defer(lambda: seen.append(("d", hw._seq)))
+        hw.link.send, send = fail, hw.link.send
+        with pytest.raises(OSError, match="link down"):
+            hw.step(np.zeros(2))  # the command cannot go out: the step fails and vents ...
+        hw.link.send = send
+        assert seen[-1][0] == "d"  # ... and the work handed over still ran
+        hw.defer(lambda: seen.append(("e", -1)))
+    assert seen[-1] == ("e", -1)  # close() runs what is left
+
+
 def test_realtime_context_restores_what_it_changed():
     before = os.sched_getscheduler(0) if hasattr(os, "sched_getscheduler") else None
     assert gc.isenabled()

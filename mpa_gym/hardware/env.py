@@ -25,6 +25,8 @@ import atexit
 import math
 import time
 import weakref
+from collections import deque
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import gymnasium as gym
@@ -127,6 +129,10 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     Between episodes, pre-flight checks and tools use the link through `telemetry` (the
     newest frame), `poll(duration_s)`, `hold(pe_bar, pf_bar, duration_s)` and `vent()`.
+    During one, `defer(fn)` hands work that need not delay a command (writing the last step's
+    log record) to the slack of the next period: it runs right after that step's command is
+    sent, while the loop waits for the period's end, instead of between the telemetry and the
+    command.
 
     `info` on every step: the sim envs' keys and `overruns`, `period_s`, `jitter_s`,
     `latency_s` (command to acknowledging telemetry), `corrupt_frames`, `late_telemetry`,
@@ -193,6 +199,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self.session_overruns = 0  # since the env was made, like late_telemetry and timing
         self.late_telemetry = 0
         self.timing: dict[str, list[float]] = {"period_s": [], "latency_s": []}
+        self._deferred: deque[Callable[[], Any]] = deque()  # defer(): run in the next slack
         atexit.register(_vent_at_exit, weakref.ref(self))
 
     # -- link -------------------------------------------------------------------------------
@@ -257,6 +264,19 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             except OSError:
                 return
 
+    def defer(self, fn: Callable[[], Any]) -> None:
+        """Run ``fn()`` in the slack of the next control period: right after the next
+        ``step`` has sent its command, while it waits for the period's end (a log write,
+        bookkeeping), so that it does not delay the command. Deferred work runs once, in the
+        order given; ``reset``, ``close``, a step that sends no command and a step that fails
+        (after venting) run what is pending too, so nothing handed over is lost."""
+        self._deferred.append(fn)
+
+    def run_deferred(self) -> None:
+        """Run the work ``defer`` handed over that has not run yet, now."""
+        while self._deferred:
+            self._deferred.popleft()()
+
     # -- safety -----------------------------------------------------------------------------
     def _check(self, stale_s: float | None = None, watchdog: bool = True) -> str | None:
         """The reason to stop, or None (telemetry older than ``stale_s``, default the env's;
@@ -277,13 +297,17 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         if watchdog:
             stops |= proto.FAULT_WATCHDOG_VENT
         if t.faults & stops:
-            return f"device fault flags 0x{t.faults:02x}"
+            names = ", ".join(proto.fault_names(t.faults & stops))
+            return (f"device fault flags 0x{t.faults:02x} ({names})" + (
+                "; the device's watchdog vented: no command reached it within its limit (the PC "
+                "or the link stalled)" if t.faults & proto.FAULT_WATCHDOG_VENT & stops else ""))
         return None
 
     # -- gym API ----------------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None
               ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
+        self.run_deferred()
         options = dict(options or {})
         if set(options) - {"homing"}:
             raise ValueError(f"reset options {sorted(options)}: the rig's plant cannot be set; "
@@ -391,12 +415,13 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._done:
             raise RuntimeError("step() on a finished (or never started) episode: call reset()")
-        a = C.check_action(action)
+        a = C.check_action(action)  # a refused action: the episode (and deferred work) waits
         try:
             return self._step(a)
         except BaseException:
             self.vent()
             self._done = True
+            self.run_deferred()
             raise
 
     def _step(self, a: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -430,6 +455,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             self._prev = cmd
             self._send(proto.Command, float(cmd[0]), float(cmd[1]))
             sent = self._seq
+            self.run_deferred()  # the command is out: the rest of the period is slack
             # this period's end: one period on, or, after an overrun, one period after this
             # (late) start, so the command still gets a whole period before it is observed
             self._deadline = (start if late > 0.25 * c.dt_s else self._deadline) + c.dt_s
@@ -449,6 +475,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                         f"acknowledges command #{self._tel.ack_seq}, sent #{sent}); check the "
                         "link and the device")
         else:
+            self.run_deferred()
             self._read(start)  # the newest telemetry, for the record
         self._j = j = j + 1
         reason = slow or self._check() or late_ack  # silence reads as stale, not late
@@ -501,7 +528,10 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         try:
             self.vent()
         finally:
-            self.link.close()
+            try:
+                self.run_deferred()
+            finally:
+                self.link.close()
 
     def __enter__(self) -> HardwareLegEnv:
         return self
