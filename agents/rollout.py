@@ -17,7 +17,6 @@ loopback and rolls out against it.
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import functools
 import json
@@ -130,8 +129,9 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
     """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing, and
     ``stopped`` (the reason) if the env's safety layer ended an episode early.
 
-    ``realtime``: real-time scheduling and no garbage collection for the episodes, as far as
-    permitted (``mpa_gym.hardware.realtime``; the timing says what was granted)."""
+    The episodes run with the garbage collector off (its full collections pause longer than
+    the device's watchdog allows); ``realtime`` adds real-time scheduling, as far as permitted
+    (``mpa_gym.hardware.realtime``; the timing says what was granted)."""
     check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
     if isinstance(episodes, bool) or not isinstance(episodes, int) or not 1 <= episodes <= 10_000:
         raise ValueError(f"--episodes={episodes!r} must be a whole number in [1, 10000]")
@@ -157,7 +157,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
         _write(f, {"event": "stopped", "fault": stop_reason(e)})
         f.close()
         raise
-    with env, f, (rt_context() if realtime else contextlib.nullcontext()) as rt_report:
+    with env, f, rt_context(sched_fifo=realtime) as rt_report:
         _write(f, {"event": "session", "started_utc": datetime.datetime.now(datetime.timezone.utc)
                    .isoformat(timespec="seconds"), "pid": os.getpid(), "policy": policy_spec,
                    "scenario": env.plan.scenario.name, "control_hz": control_hz,
@@ -190,9 +190,11 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             try:
                 env.vent()
             except BaseException as v:  # a dead link, a second Ctrl-C: the reason still goes
+                env.run_deferred()  # the last step's record, before the stop's
                 _write(f, {"event": "stopped", "fault": stop_reason(e, vented=False),
                            "vent_fault": stop_reason(v, vented=False)})
                 raise  # the vent's failure (the original as its context): the rig may be live
+            env.run_deferred()
             _write(f, {"event": "stopped", "fault": stop_reason(e)})
             raise
     period = np.array(env.timing["period_s"])

@@ -401,14 +401,11 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
         raise
     try:  # from the first word on, a signal stops the emulator through the handler below
         print(f"emulating the rig at {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        if a.realtime:
-            from mpa_gym.hardware.realtime import realtime
+        from mpa_gym.hardware.realtime import realtime
 
-            with realtime() as rt:
-                for note in rt["notes"]:
-                    print(f"mpa-gym emulate: {note}", file=sys.stderr, flush=True)
-                emu.run(a.duration)
-        else:
+        with realtime(sched_fifo=a.realtime) as rt:  # the collector off in any case
+            for note in rt["notes"]:
+                print(f"mpa-gym emulate: {note}", file=sys.stderr, flush=True)
             emu.run(a.duration)
     except KeyboardInterrupt as e:  # Ctrl-C is how an emulator is meant to stop (exit 0)
         emu.stop()
@@ -637,8 +634,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log", default="runs/rollout.jsonl", metavar="FILE",
                    help="per-step JSON-lines log, written as it happens")
     p.add_argument("--realtime", action="store_true",
-                   help="real-time (SCHED_FIFO) priority and no garbage collection for the "
-                        "episodes, as far as permitted (the timing report says what was granted)")
+                   help="real-time (SCHED_FIFO) priority for the episodes, as far as "
+                        "permitted (the timing report says what was granted; the garbage "
+                        "collector is off during them in any case)")
     p = add("identify", "fit the plant (mass, γ, C1, C2, regulator lag and dead time) to a "
             "rollout log; validate on a held-out stretch", cmd_identify, show_identify)
     p.add_argument("--log", required=True, metavar="LOG",

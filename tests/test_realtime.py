@@ -144,6 +144,12 @@ def test_realtime_context_restores_what_it_changed():
     assert gc.isenabled()
     if before is not None:
         assert os.sched_getscheduler(0) == before
+    with realtime(sched_fifo=False) as rt:  # what every rollout runs in: the collector off only
+        assert not gc.isenabled() and rt == {"sched_fifo": False, "gc_disabled": True,
+                                             "notes": []}
+        if before is not None:
+            assert os.sched_getscheduler(0) == before
+    assert gc.isenabled()
     with pytest.raises(ValueError, match=r"priority=0 is outside the allowed range \[1, 99\]"):
         with realtime(0):
             pass

@@ -1,5 +1,5 @@
-"""What a control loop on a general-purpose OS does to hold its rate (``mpa-gym rollout
---realtime``, ``mpa-gym emulate --realtime``).
+"""What a control loop on a general-purpose OS does to hold its rate (``mpa-gym rollout``,
+``mpa-gym emulate``; ``--realtime`` adds the real-time priority).
 
 - **Scheduling.** A loop that sleeps until its deadline is woken when the scheduler gets round to
   it; on a loaded machine that is milliseconds late, and the period overruns. ``SCHED_FIFO``
@@ -7,8 +7,11 @@
   (root, ``CAP_SYS_NICE`` or an ``rtprio`` limit in ``/etc/security/limits.conf``); without it the
   loop runs at normal priority and the returned report says so.
 - **Garbage collection.** CPython's cyclic collector pauses the interpreter for a time that
-  grows with the heap; it is frozen (``gc.freeze``) and disabled for the loop and re-enabled
-  after. The loop allocates no reference cycles, so nothing accumulates meanwhile.
+  grows with the heap: with torch imported and a rollout's records accumulating, its first
+  full collection, about 28 s into a 500 Hz rollout, took 43 ms, beyond the device's 40 ms
+  watchdog, which vented the rig. It is frozen (``gc.freeze``) and disabled for the loop,
+  always (``sched_fifo`` or not), and re-enabled after. The loop allocates no reference
+  cycles, so nothing accumulates meanwhile.
 
 Memory locking (``mlockall``) is left out: with torch loaded it would pin hundreds of MB.
 """
@@ -23,15 +26,18 @@ from typing import Any
 
 
 @contextlib.contextmanager
-def realtime(priority: int = 20) -> Iterator[dict[str, Any]]:
-    """Real-time scheduling (``SCHED_FIFO`` at ``priority``, 1…99, as far as permitted) and the
-    collector off for the ``with`` block; yields a report ``{"sched_fifo": bool,
-    "gc_disabled": True, "notes": [...]}`` and restores the previous state on exit."""
+def realtime(priority: int = 20, sched_fifo: bool = True) -> Iterator[dict[str, Any]]:
+    """The collector off and, with ``sched_fifo``, real-time scheduling (``SCHED_FIFO`` at
+    ``priority``, 1…99, as far as permitted) for the ``with`` block; yields a report
+    ``{"sched_fifo": bool, "gc_disabled": True, "notes": [...]}`` and restores the previous
+    state on exit."""
     if not 1 <= priority <= 99:
         raise ValueError(f"priority={priority} is outside the allowed range [1, 99]")
     report: dict[str, Any] = {"sched_fifo": False, "gc_disabled": True, "notes": []}
     old_policy = old_param = None
-    if hasattr(os, "sched_setscheduler"):
+    if not sched_fifo:
+        pass
+    elif hasattr(os, "sched_setscheduler"):
         try:
             old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
