@@ -238,3 +238,83 @@ def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv) -> dict[st
     if "fault" in rows[-1]:
         m["fault"] = rows[-1]["fault"]
     return m
+
+
+def wait_floor(control_hz: float, duration_s: float, spin_s: float = 3e-4) -> dict[str, Any]:
+    """How late the OS alone lets the rig loop's wait end: ``duration_s`` of the wait of
+    ``HardwareLegEnv`` (the same link read, ``mpa_gym.hardware.env.wait_s``) on a loopback
+    socket that nothing sends to, with no work between deadlines. Its overrun fraction is what
+    no loop can beat on this machine at this moment."""
+    from mpa_gym.hardware.env import wait_s
+    from mpa_gym.hardware.transport import UDPServer
+
+    dt = 1.0 / control_hz
+    late = np.empty(max(1, round(duration_s * control_hz)))
+    link = UDPServer("127.0.0.1", 0)
+    try:
+        deadline = time.monotonic() + dt
+        for i in range(late.size):
+            while (left := deadline - time.monotonic()) > 0.0:
+                link.recv(wait_s(left, spin_s))
+            late[i] = time.monotonic() - deadline
+            deadline += dt
+    finally:
+        link.close()
+    return {"steps": int(late.size), "overrun_pct": float(np.mean(late > 0.25 * dt) * 100),
+            "p99_late_ms": float(np.percentile(late, 99) * 1e3)}
+
+
+def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 10.0,
+                   repeats: int = 3, rig: Any = "nominal", scenario: Any = "nominal"
+                   ) -> dict[str, Any]:
+    """The rig loop's timing (``mpa-gym bench --loop``): ``repeats`` pairs, each the machine's
+    floor (``wait_floor``) then a ``loop_s`` rollout of ``policy_spec`` at ``control_hz``
+    against a device emulator in another process playing ``rig``, side by side so that both
+    see the same machine. Returns each pair and the medians of overrun %, p99 jitter and
+    median command latency."""
+    import tempfile
+
+    from mpa_gym.hardware.emulator import EmulatorProcess
+
+    check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
+    check_range("--loop-s", loop_s, 1.0, 600.0, unit="s")
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:
+        raise ValueError(f"--repeats={repeats!r} must be a whole number in [1, 100]")
+    pairs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(repeats):
+            floor = wait_floor(control_hz, loop_s)
+            with EmulatorProcess(rig) as emu:
+                out = rollout(policy_spec, emu.url, Path(tmp) / f"loop{i}.jsonl",
+                              scenario=scenario, control_hz=control_hz, episode_s=loop_s)
+            t = out["timing"]
+            pairs.append({"floor": floor, "loop": {
+                "steps": t["steps"], "overrun_pct": 100.0 * t["overruns"] / max(1, t["steps"]),
+                "p99_jitter_ms": t["p99_jitter_ms"], "median_latency_ms": t["median_latency_ms"],
+                "position_rmse_mm": out["episodes"][0]["position_rmse_mm"],
+                "stopped": out.get("stopped")}})
+    med = lambda side, key: float(np.median([p[side][key] for p in pairs]))  # noqa: E731
+    return {"policy": policy_spec, "control_hz": control_hz, "loop_s": loop_s,
+            "rig": rig if isinstance(rig, str) else "(dict)", "pairs": pairs,
+            "median": {"floor_overrun_pct": med("floor", "overrun_pct"),
+                       "floor_p99_late_ms": med("floor", "p99_late_ms"),
+                       "loop_overrun_pct": med("loop", "overrun_pct"),
+                       "loop_p99_jitter_ms": med("loop", "p99_jitter_ms"),
+                       "loop_median_latency_ms": med("loop", "median_latency_ms")}}
+
+
+def show_loop_benchmark(o: dict[str, Any]) -> str:
+    lines = [f"rig loop of {o['policy']} at {o['control_hz']:g} Hz against an emulator process "
+             f"({o['rig']}), {o['loop_s']:g} s per run; floor: the same wait with no work"]
+    for i, p in enumerate(o["pairs"]):
+        f, lp = p["floor"], p["loop"]
+        lines.append(f"  pair {i}: floor {f['overrun_pct']:.2f} % late (p99 {f['p99_late_ms']:.3f}"
+                     f" ms) | loop {lp['overrun_pct']:.2f} % overruns, p99 jitter "
+                     f"{lp['p99_jitter_ms']:.3f} ms, median latency "
+                     f"{lp['median_latency_ms']:.3f} ms, RMSE {lp['position_rmse_mm']:.3f} mm"
+                     + (f", STOPPED: {lp['stopped']}" if lp["stopped"] else ""))
+    m = o["median"]
+    lines.append(f"median: floor {m['floor_overrun_pct']:.2f} %, loop {m['loop_overrun_pct']:.2f} "
+                 f"% overruns (p99 jitter {m['loop_p99_jitter_ms']:.3f} ms, median latency "
+                 f"{m['loop_median_latency_ms']:.3f} ms)")
+    return "\n".join(lines)

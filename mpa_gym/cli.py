@@ -210,6 +210,10 @@ def show_figures(o: dict[str, Any]) -> str:
 def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym import bench
 
+    if a.loop is not None:
+        from agents.rollout import loop_benchmark
+
+        return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig)}
     if a.inference is not None:
         from agents.inference import benchmark
 
@@ -227,6 +231,10 @@ def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
 def show_bench(o: dict[str, Any]) -> str:
     from mpa_gym import bench
 
+    if "loop" in o:
+        from agents.rollout import show_loop_benchmark
+
+        return show_loop_benchmark(o["loop"])
     if "inference" in o:
         from agents.inference import show_benchmark
 
@@ -667,6 +675,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--inference: actions timed on the deployed path (SB3: N/10)")
     p.add_argument("--no-emulator", action="store_true",
                    help="--inference: without the emulator process")
+    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb",
+                   help="instead: the rig loop's overruns, jitter and latency against a device "
+                        "emulator in another process, each run beside the machine's floor (the "
+                        "same wait with no work)")
+    p.add_argument("--control-hz", type=float, default=100.0, metavar="HZ",
+                   help="--loop: control rate (default 100)")
+    p.add_argument("--loop-s", type=float, default=10.0, metavar="S",
+                   help="--loop: seconds per run (default 10)")
+    p.add_argument("--repeats", type=int, default=3, metavar="N",
+                   help="--loop: floor/loop pairs (default 3)")
+    p.add_argument("--rig", default="nominal", metavar="NAME_OR_YAML",
+                   help="--loop: the plant the emulator plays (default nominal)")
     return parser
 
 

@@ -153,3 +153,20 @@ def test_realtime_context_restores_what_it_changed():
     with pytest.raises(ValueError, match=r"priority=0 is outside the allowed range \[1, 99\]"):
         with realtime(0):
             pass
+
+
+def test_loop_benchmark_puts_each_run_beside_the_machines_floor():
+    """``mpa-gym bench --loop``: a rollout against an emulator process, paired with the wait
+    alone; the figures are what the rollout's timing says, the floor a real wait."""
+    from agents.rollout import loop_benchmark, wait_floor
+
+    floor = wait_floor(200.0, 0.5)
+    assert floor["steps"] == 100 and 0.0 <= floor["overrun_pct"] <= 100.0
+    assert floor["p99_late_ms"] >= 0.0  # a wait never ends before its deadline
+    o = loop_benchmark("pid", control_hz=100.0, loop_s=1.0, repeats=1)
+    (pair,) = o["pairs"]
+    assert pair["loop"]["steps"] == 100 and pair["loop"]["stopped"] is None
+    assert pair["loop"]["position_rmse_mm"] < 1.0  # pid on the nominal emulated rig
+    assert o["median"]["loop_overrun_pct"] == pair["loop"]["overrun_pct"]
+    with pytest.raises(ValueError, match=r"--repeats=0 must be a whole number in \[1, 100\]"):
+        loop_benchmark("pid", repeats=0)

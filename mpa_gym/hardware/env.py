@@ -48,6 +48,14 @@ CONTROL_HZ = 1.0 / TaskConfig.dt_s
 CONTROL_HZ_RANGE = (1.0, 500.0)
 
 
+def wait_s(left_s: float, spin_s: float) -> float:
+    """[s] How long the loop may block in one read with ``left_s`` to its deadline: sleep in
+    the select, but poll (spin) through the last ``spin_s``, since a sleeping process is woken
+    whenever the OS (or the VM's host) gets round to it; at most 2 ms, to read telemetry as it
+    comes."""
+    return 0.0 if left_s < spin_s else min(left_s - spin_s, 0.002)
+
+
 class HardwareFault(RuntimeError):
     """The rig was vented because of a safety stop; the message says which and why."""
 
@@ -213,10 +221,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
     def _read(self, until: float) -> None:
         """Read telemetry until the monotonic time ``until`` (at least one poll)."""
         while True:
-            left = until - time.monotonic()
-            # sleep in the select, but poll (spin) through the last spin_s: a sleeping
-            # process is woken whenever the OS (or the VM's host) gets round to it
-            data = self.link.recv(0.0 if left < self.spin_s else min(left - self.spin_s, 0.002))
+            data = self.link.recv(wait_s(until - time.monotonic(), self.spin_s))
             t = time.monotonic()
             for msg in self.decoder.feed(data) if data else ():
                 if isinstance(msg, proto.Telemetry):
