@@ -402,7 +402,10 @@ def plot(report: dict[str, Any], out_dir: Path) -> list[Path]:
 
     paths = []
     for sc, per_ctrl in report["traces"].items():
-        fig = Figure(figsize=(9, 8), layout="constrained")
+        # fixed margins: a constrained layout measured every text box of the 14 figures of a
+        # report again at each draw, half of the plotting time
+        fig = Figure(figsize=(9, 8))
+        fig.subplots_adjust(left=0.09, right=0.98, bottom=0.06, top=0.96, hspace=0.12)
         ax = fig.subplots(4, 1, sharex=True)
         first = next(iter(per_ctrl.values()))
         ax[0].plot(first.t, first.x_ref, "k--", lw=1, label="X̂")

@@ -3,6 +3,7 @@ controller by name (``ff``, ``pid``, ``mbfb``) or run folder."""
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any
@@ -103,7 +104,34 @@ def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
     """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
 
     ``deployed``: the compiled single-observation path of ``agents.inference`` (for the rig's
-    real-time loop) instead of the SB3 one (batches, evaluation)."""
+    real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded once
+    per process for as long as the run's files are unchanged (a report loads a run for every
+    batch it runs; ``LearnedPolicy`` keeps no state of its own, so they can share it)."""
+    run = Path(run_dir)
+    files = (("config.yaml", "model.zip", "vecnormalize.pkl") if which == "final" else
+             ("config.yaml", "best/best_model.zip", "best/vecnormalize.pkl"))
+    stamp = tuple(_stamp(run / name) for name in files)
+    if not deployed and stamp[1] is not None:
+        return _load_learned(str(run.resolve()), which, stamp)
+    return _load_run(run, which, deployed)
+
+
+def _stamp(path: Path) -> tuple[int, int] | None:
+    """(mtime [ns], size) of a file, None if there is none."""
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=8)
+def _load_learned(run: str, which: str, stamp: tuple[Any, ...]) -> tuple[Any, Any]:
+    """``load_run`` of an SB3 policy, once per run files' ``stamp`` (mtimes and sizes)."""
+    return _load_run(Path(run), which, False)
+
+
+def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any]:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -119,6 +120,11 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     # the model and the saved normaliser give directly
     policy, cfg = load_run(run)
     assert policy.features == FeatureSpec(**cfg.observation_wrapper)
+    # loaded once while the run's files are unchanged; a run written again is loaded again
+    assert load_run(run)[0] is policy
+    st = (run / "model.zip").stat()
+    os.utime(run / "model.zip", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    assert load_run(run)[0] is not policy
     assert policy.force_stiffness is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
