@@ -35,9 +35,7 @@ def realtime(priority: int = 20, sched_fifo: bool = True) -> Iterator[dict[str, 
         raise ValueError(f"priority={priority} is outside the allowed range [1, 99]")
     report: dict[str, Any] = {"sched_fifo": False, "gc_disabled": True, "notes": []}
     old_policy = old_param = None
-    if not sched_fifo:
-        pass
-    elif hasattr(os, "sched_setscheduler"):
+    if sched_fifo and hasattr(os, "sched_setscheduler"):
         try:
             old_policy, old_param = os.sched_getscheduler(0), os.sched_getparam(0)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
@@ -45,7 +43,7 @@ def realtime(priority: int = 20, sched_fifo: bool = True) -> Iterator[dict[str, 
         except OSError as e:
             report["notes"].append(f"SCHED_FIFO not permitted ({e.strerror}): normal priority; "
                                    "grant CAP_SYS_NICE or an rtprio limit")
-    else:
+    elif sched_fifo:
         report["notes"].append("no SCHED_FIFO on this OS: normal priority")
     was_enabled = gc.isenabled()
     gc.collect()
