@@ -103,12 +103,12 @@ class _PlanPolicy:
         out = np.empty((obs.shape[0], 2))
         for plan, rows in self._plan_rows(obs.shape[0]):
             table = _period_feedforward(plan.design, dt)
-            tr = t[rows]
-            j = np.rint(tr / dt)
-            if table is not None and np.all(np.abs(tr / dt - j) < 1e-3):
+            steps = t[rows] / dt
+            j = np.rint(steps)
+            if table is not None and np.all(np.abs(steps - j) < 1e-3):
                 out[rows] = table[j.astype(np.int64) % len(table)]
             else:
-                out[rows] = plan.design.pressures(tr + 0.5 * dt)
+                out[rows] = plan.design.pressures(t[rows] + 0.5 * dt)
         return out
 
     def _pid(self, obs: np.ndarray, state: Any, episode_start: np.ndarray | None, kp: float,

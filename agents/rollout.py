@@ -31,7 +31,13 @@ import numpy as np
 
 from agents.evaluate import Trace, metrics
 from agents.policies import load_policy
-from mpa_gym.hardware.env import CONTROL_HZ, CONTROL_HZ_RANGE, HardwareFault, HardwareLegEnv
+from mpa_gym.hardware.env import (
+    CONTROL_HZ,
+    CONTROL_HZ_RANGE,
+    SPIN_S,
+    HardwareFault,
+    HardwareLegEnv,
+)
 from mpa_gym.hardware.realtime import realtime as rt_context
 from mpa_gym.model.params import BAR, check_range
 from mpa_gym.task.config import END_STOPS_M
@@ -240,7 +246,8 @@ def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv) -> dict[st
     return m
 
 
-def wait_floor(control_hz: float, duration_s: float, spin_s: float = 3e-4) -> dict[str, Any]:
+def wait_floor(control_hz: float, duration_s: float, spin_s: float = SPIN_S
+               ) -> dict[str, Any]:
     """How late the OS alone lets the rig loop's wait end: ``duration_s`` of the wait of
     ``HardwareLegEnv`` (the same link read, ``mpa_gym.hardware.env.wait_s``) on a loopback
     socket that nothing sends to, with no work between deadlines. Its overrun fraction is what

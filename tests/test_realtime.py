@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +25,7 @@ TASK = {"episode_s": 2.0}
 # either well inside it (≤ stale_s / 4) or well beyond it (2 × stale_s), so that a scheduling
 # hiccup of the shared 2-core test machine (tens of ms) cannot move a step across it
 STALE_S = 0.2
+RIG = str(Path(__file__).resolve().parents[1] / "configs" / "rigs" / "offnominal.yaml")
 
 
 @pytest.fixture
@@ -163,10 +165,12 @@ def test_loop_benchmark_puts_each_run_beside_the_machines_floor():
     floor = wait_floor(200.0, 0.5)
     assert floor["steps"] == 100 and 0.0 <= floor["overrun_pct"] <= 100.0
     assert floor["p99_late_ms"] >= 0.0  # a wait never ends before its deadline
-    o = loop_benchmark("pid", control_hz=100.0, loop_s=1.0, repeats=1)
+    # the emulator plays a leg unlike the model: +0.6 kg, C1 −10 %, dead time, lag, slew, friction
+    o = loop_benchmark("pid", control_hz=100.0, loop_s=1.0, repeats=1, rig=RIG)
     (pair,) = o["pairs"]
     assert pair["loop"]["steps"] == 100 and pair["loop"]["stopped"] is None
-    assert pair["loop"]["position_rmse_mm"] < 1.0  # pid on the nominal emulated rig
+    # homed, then tracking under feedback: a third of the feedforward's 15 mm there at most
+    assert pair["loop"]["position_rmse_mm"] < 5.0
     assert o["median"]["loop_overrun_pct"] == pair["loop"]["overrun_pct"]
     with pytest.raises(ValueError, match=r"--repeats=0 must be a whole number in \[1, 100\]"):
         loop_benchmark("pid", repeats=0)

@@ -46,6 +46,7 @@ from mpa_gym.task.plan import make_plan
 # device's watchdog allow at most
 CONTROL_HZ = 1.0 / TaskConfig.dt_s
 CONTROL_HZ_RANGE = (1.0, 500.0)
+SPIN_S = 3e-4  # [s] the loop polls (spins) through this long before each deadline (wait_s)
 
 
 def wait_s(left_s: float, spin_s: float) -> float:
@@ -159,7 +160,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                  overpressure_margin_bar: float = 0.5, connect_timeout_s: float = 2.0,
                  settle_timeout_s: float = 10.0, params: Params = DEFAULT_PARAMS,
                  homing: HomingConfig | dict[str, Any] | bool | None = True,
-                 spin_s: float = 3e-4) -> None:
+                 spin_s: float = SPIN_S) -> None:
         check_range("control_hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
         check_range("stale_s", stale_s, 1e-3, 1.0, unit="s")
         check_range("settle_s", settle_s, 0.0, 30.0, unit="s")
