@@ -269,10 +269,12 @@ def test_pid_derivative_is_low_pass_filtered():
 
 @pytest.mark.parametrize("name", ["pid", "mbfb"])
 def test_integrators_do_not_wind_up_while_the_output_saturates(name):
-    # A 5 cm error saturates either controller's output: the integral takes the first step
-    # (nothing was saturated before it) and then holds while the error pushes the same way;
-    # an error of the other sign integrates again at once.
-    ctrl = make_baseline(name)
+    # A 5 cm error saturates either controller's output at a stiff proportional gain (5 bar,
+    # 250 N: beyond the ±1.5 bar residual): the integral takes the first step (nothing was
+    # saturated before it) and then holds while the error pushes the same way; an error of the
+    # other sign integrates again at once.
+    stiff = {"pid": {"kp_bar_per_m": 100.0}, "mbfb": {"kp_N_per_m": 5000.0}}[name]
+    ctrl = dataclasses.replace(make_baseline(name), **stiff)
     _, st = ctrl.predict(_obs_with_error(0.05, 0.0), None, np.ones(1, bool))
     first = st[0, 0]
     assert first == pytest.approx(0.05 * 0.01) and st[0, 2] != 0.0
@@ -293,6 +295,14 @@ def test_tuning_runs_on_the_training_plants_and_says_so():
     assert set(r["gains"]) == {"kp_bar_per_m", "ki_bar_per_m_s", "kd_bar_s_per_m", "tf_s"}
     assert r["tuned_on"]["randomize"]["pressure_dead_time_s"] == [0.0, 0.03]
     sc, plants = training_plants(n_plants=2, episode_s=9.0)
+    # two draws, then their undamped twins: the same plant, the leg's damping at the low end
+    # of its range, friction and the regulator's rate limit off
+    assert len(plants) == 4
+    for draw, twin in zip(plants[:2], plants[2:], strict=True):
+        assert twin == {**draw, "gamma_Ns_per_m": 20.0, "braid_friction_ratio": 0.0,
+                        "slider_friction_N": 0.0, "slider_viscous_Ns_per_m": 0.0,
+                        "pressure_slew_bar_per_s": 0.0}
+        assert draw["braid_friction_ratio"] > 0.0 and draw["pressure_slew_bar_per_s"] >= 5.0
     assert score("pid", r["gains"], sc, plants) == pytest.approx(r["mean_position_rmse_mm"])
     with pytest.raises(ValueError, match="n_trials=0 must be a whole number >= 1"):
         tune("pid", n_trials=0)
