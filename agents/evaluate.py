@@ -253,6 +253,10 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         from agents.robustness import robustness as sweep
 
         report["robustness"] = sweep(policies, seed=seed)
+    from agents.robustness import no_harm
+
+    report["no_harm"] = no_harm(results, report.get("robustness"),
+                                [_label(p) for p in policies if p not in BASELINES])
     return report
 
 
@@ -393,6 +397,10 @@ def markdown(report: dict[str, Any]) -> str:
         from agents.robustness import markdown as robustness_markdown
 
         out += robustness_markdown(report["robustness"])
+    if report.get("no_harm"):
+        from agents.robustness import no_harm_markdown
+
+        out += no_harm_markdown(report["no_harm"])
     return "\n".join(out)
 
 
@@ -435,7 +443,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     data = {"seed": report["seed"], "results": _finite(report["results"]),
             "learning": report.get("learning", {}),
             "controllers": report.get("controllers", {}),
-            "groups": _finite(report.get("groups", {}))}
+            "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = plot(report, out / "plots")
     if report.get("robustness"):
         from agents.robustness import plot as robustness_plot

@@ -17,6 +17,13 @@ of a 25-leg batch. Per cell and controller, over the last three reference period
 
 A learned controller's cells are marked ``held_out`` where a value lies outside what its
 training scenario draws (its ``randomize`` range, or its fixed plant value).
+
+``KICKS`` are plants hit by ``LEVEL_KICK`` alone (no other effect): the time after it until
+|X − X̂| stays below 1 mm. ``no_harm`` audits a report for what a residual must never do: on
+every scenario, grid cell, level and kick plant, a learned controller's position RMSE must be
+at most the feedforward's it corrects and at most ``HARM_RATIO`` times the best feedback
+baseline's (either bound raised to ``HARM_FLOOR_MM``), and its loop stable where the
+feedforward's is.
 """
 
 from __future__ import annotations
@@ -85,6 +92,12 @@ LEVELS: dict[str, dict[str, float]] = {
 }
 LEVEL_RIG = {"pressure_quantum_bar": 0.02}
 LEVEL_KICK = Impulse(t_s=10.0, force_N=30.0, duration_s=0.05)
+# Plants hit by LEVEL_KICK alone: a load beyond what the default training draws (1.2 kg)
+KICKS: dict[str, dict[str, float]] = {"load_1.6kg": {"extra_mass_kg": 1.6}}
+
+HARM_RATIO = 1.5  # a learned residual may be this much worse than the best feedback baseline
+HARM_FLOOR_MM = 0.05  # [mm] below this a difference is no harm (sensor noise is 0.02 mm)
+FEEDBACK_BASELINES = ("pid", "mbfb")
 
 
 def _scenario(base: Scenario, name: str, rig: dict[str, float],
@@ -224,12 +237,14 @@ def held_out(plant: dict[str, float], ranges: dict[str, tuple[float, float]] | N
 
 def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_SEED,
                grids: tuple[Grid, ...] | None = None,
-               levels: dict[str, dict[str, float]] | None = None, kick: Impulse | None = None
-               ) -> dict[str, Any]:
-    """The sweep: ``{"grids": {name: {...}}, "levels": {...}}`` (module docstring); by default
-    ``GRIDS``, ``LEVELS`` and ``LEVEL_KICK`` on the nominal scenario."""
+               levels: dict[str, dict[str, float]] | None = None, kick: Impulse | None = None,
+               kicks: dict[str, dict[str, float]] | None = None) -> dict[str, Any]:
+    """The sweep: ``{"grids": {name: {...}}, "levels": {...}, "kicks": {...}}`` (module
+    docstring); by default ``GRIDS``, ``LEVELS``, ``KICKS`` and ``LEVEL_KICK`` on the nominal
+    scenario."""
     grids = GRIDS if grids is None else grids
     levels = LEVELS if levels is None else levels
+    kicks = KICKS if kicks is None else kicks
     kick = LEVEL_KICK if kick is None else kick
     base = load_scenario(scenario)
     period = base.reference.period
@@ -253,18 +268,80 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
             entry["controllers"][labels[p]] = [m[r * nc:(r + 1) * nc]
                                                for r in range(len(g.row_values))]
         out["grids"][g.name] = entry
-    if levels:
-        sc = _scenario(base, "levels", LEVEL_RIG, (kick,))
-        names = list(levels)
-        plants = [levels[n] for n in names]
-        out["levels_plants"] = {n: {**levels[n], **LEVEL_RIG} for n in names}
-        out["levels_kick"] = dataclasses.asdict(kick)
+    out["levels_kick"] = dataclasses.asdict(kick)
+    for key, plants_by_name, rig in (("levels", levels, LEVEL_RIG), ("kicks", kicks, {})):
+        out[key] = {}
+        if not plants_by_name:
+            continue
+        sc = _scenario(base, key, rig, (kick,))
+        names = list(plants_by_name)
+        plants = [plants_by_name[n] for n in names]
+        out[f"{key}_plants"] = {n: {**plants_by_name[n], **rig} for n in names}
         for p, run in zip(policies, run_batches(policies, sc, plants, seed), strict=True):
             m = cell_metrics(run, period, float(run["t"][0]))
             for i, n in enumerate(names):
                 m[i]["recovery_s"] = recovery_s(run, i, kick.t_s + kick.duration_s)
                 m[i]["held_out"] = held_out(plants[i], ranges[p])
-                out["levels"].setdefault(n, {})[labels[p]] = m[i]
+                out[key].setdefault(n, {})[labels[p]] = m[i]
+    return out
+
+
+def _cases(results: dict[str, Any], rob: dict[str, Any] | None
+           ) -> list[tuple[str, dict[str, dict[str, Any]]]]:
+    """(where, {controller: metrics}) for every scenario, grid cell, level and kick plant."""
+    cases = [(f"scenario {sc}", per) for sc, per in results.items()]
+    if not rob:
+        return cases
+    for name, g in rob["grids"].items():
+        ctrls = g["controllers"]
+        for r, rv in enumerate(g["rows"]["values"]):
+            for c, cv in enumerate(g["cols"]["values"]):
+                cases.append((f"{name} {g['rows']['field']} {rv:g}, {g['cols']['field']} {cv:g}",
+                              {k: rows[r][c] for k, rows in ctrls.items()}))
+    for key in ("levels", "kicks"):
+        cases += [(f"{key[:-1]} {n}", per) for n, per in (rob.get(key) or {}).items()]
+    return cases
+
+
+def _rmse(m: dict[str, Any]) -> float:
+    """[mm] a case's position RMSE; inf where the episode terminated."""
+    v = m.get("position_rmse_mm")
+    return math.inf if m.get("terminated") or v is None else float(v)
+
+
+def _none_if_inf(v: float) -> float | None:
+    """None (terminated) for an infinite RMSE: JSON has no infinity."""
+    return None if math.isinf(v) else v
+
+
+def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[str]
+            ) -> dict[str, Any]:
+    """The no-harm audit (module docstring) of each learned controller in ``learned``: per
+    controller the number of cases checked and every case that breaks a bound, with the
+    figures. Needs ``ff`` and a feedback baseline in the report; ``{}`` without them."""
+    out: dict[str, Any] = {}
+    cases = _cases(results, rob)
+    if not learned or not cases or "ff" not in cases[0][1] or \
+            not any(b in cases[0][1] for b in FEEDBACK_BASELINES):
+        return out
+    for ctrl in learned:
+        harm = []
+        for where, per in cases:
+            m, ff = per[ctrl], per["ff"]
+            best = min(_rmse(per[b]) for b in FEEDBACK_BASELINES if b in per)
+            x, f = _rmse(m), _rmse(ff)
+            reasons = []
+            if x > max(f, HARM_FLOOR_MM):
+                reasons.append("worse than ff")
+            if x > max(HARM_RATIO * best, HARM_FLOOR_MM):
+                reasons.append(f"over {HARM_RATIO:g}× the best feedback baseline")
+            if m.get("unstable") and not ff.get("unstable"):
+                reasons.append("unstable where ff is stable")
+            if reasons:
+                harm.append({"case": where, "position_rmse_mm": _none_if_inf(x),
+                             "ff_mm": _none_if_inf(f), "best_feedback_mm": _none_if_inf(best),
+                             "held_out": m.get("held_out"), "reasons": reasons})
+        out[ctrl] = {"checked": len(cases), "harm": harm}
     return out
 
 
@@ -296,16 +373,19 @@ def markdown(rob: dict[str, Any]) -> list[str]:
                 out.append(f"| {rv:g} | " + " | ".join(
                     _cell(m) + (" †" if m.get("held_out") else "") for m in row) + " |")
             out.append("")
-    if rob["levels"]:
-        kick = rob["levels_kick"]
-        ctrls = list(next(iter(rob["levels"].values())))
-        out += ["### Levels (realworldrl_suite style)", "",
-                f"Each level's plant (with a {kick['force_N']:g} N × {kick['duration_s']:g} s "
+    kick = rob.get("levels_kick") or {}
+    for key, title in (("levels", "Levels (realworldrl_suite style)"),
+                       ("kicks", "Kicks (the kick alone on a load)")):
+        if not rob.get(key):
+            continue
+        ctrls = list(next(iter(rob[key].values())))
+        out += [f"### {title}", "",
+                f"Each plant (with a {kick['force_N']:g} N × {kick['duration_s']:g} s "
                 f"kick at {kick['t_s']:g} s): position RMSE [mm] / recovery after the kick [s].",
-                "", "| level | plant | " + " | ".join(ctrls) + " |",
+                "", f"| {key[:-1]} | plant | " + " | ".join(ctrls) + " |",
                 "|---|---|" + "---|" * len(ctrls)]
-        for lv, per in rob["levels"].items():
-            plant = ", ".join(f"{k} {v:g}" for k, v in rob["levels_plants"][lv].items())
+        for lv, per in rob[key].items():
+            plant = ", ".join(f"{k} {v:g}" for k, v in rob[f"{key}_plants"][lv].items())
             cells = []
             for c in ctrls:
                 m = per[c]
@@ -315,6 +395,33 @@ def markdown(rob: dict[str, Any]) -> list[str]:
             out.append(f"| {lv} | {plant} | " + " | ".join(cells) + " |")
         out.append("")
     return out
+
+
+def no_harm_markdown(audit: dict[str, Any]) -> list[str]:
+    """The no-harm section of the Markdown report."""
+    if not audit:
+        return []
+    out = ["## No harm", "",
+           "A learned residual must not do worse than the feedforward it corrects, nor than "
+           f"{HARM_RATIO:g}× the best feedback baseline ({', '.join(FEEDBACK_BASELINES)}), on "
+           f"any scenario, grid cell, level or kick plant (either bound raised to "
+           f"{HARM_FLOOR_MM:g} mm), nor be unstable where the feedforward is stable. "
+           "† : outside the controller's training ranges.", ""]
+    for ctrl, a in audit.items():
+        out.append(f"**{ctrl}**: {len(a['harm'])} of {a['checked']} cases break a bound.")
+        if a["harm"]:
+            out += ["", "| case | RMSE [mm] | ff [mm] | best feedback [mm] | bound broken |",
+                    "|---|---|---|---|---|"]
+            for h in a["harm"]:
+                out.append(f"| {h['case']}{' †' if h.get('held_out') else ''} | "
+                           f"{_mm(h['position_rmse_mm'])} | {_mm(h['ff_mm'])} | "
+                           f"{_mm(h['best_feedback_mm'])} | {'; '.join(h['reasons'])} |")
+        out.append("")
+    return out
+
+
+def _mm(v: float | None) -> str:
+    return "terminated" if v is None else f"{v:.3f}"
 
 
 def plot(rob: dict[str, Any], out_dir: Path) -> list[Path]:

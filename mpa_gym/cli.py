@@ -300,7 +300,7 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     paths = write_report(report, a.out)
     data = json.loads(paths["json"].read_text())
     return {"results": data["results"], "robustness": data.get("robustness"),
-            "groups": data.get("groups") or {},
+            "groups": data.get("groups") or {}, "no_harm": data.get("no_harm") or {},
             "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
             "plots": str(paths["plots"])}
 
@@ -327,6 +327,9 @@ def show_evaluate(o: dict[str, Any]) -> str:
                  for lv, per in levels.items()]
         extra = ("\n\nrobustness levels, position RMSE [mm] (grids in the report)\n"
                  + _table(lrows, ["level", *next(iter(levels.values()))]))
+    for ctrl, a in (o.get("no_harm") or {}).items():
+        extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
+                  "cases" + (" (listed in the report)" if a["harm"] else ""))
     head = "position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods"
     if groups:
         head += "; several runs of one config: IQM [95 % CI] over the runs"
@@ -351,7 +354,8 @@ def show_tune_baselines(o: dict[str, Any]) -> str:
         lines.append(f"{r['policy']}: {gains}\n  mean position RMSE "
                      f"{r['mean_position_rmse_mm']:.3f} mm (defaults: "
                      f"{r['default_mean_position_rmse_mm']:.3f} mm) over "
-                     f"{r['tuned_on']['n_plants']} training plants of {r['tuned_on']['config']}, "
+                     f"{r['tuned_on']['n_plants']} training plants (and as many undamped "
+                     f"twins) of {r['tuned_on']['config']}, "
                      f"{r['tuned_on']['budget']}")
     return "\n".join(lines)
 
@@ -565,14 +569,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the robustness sweep (grids of dead time x load and hysteresis x "
                         "slider friction, easy/medium/hard levels; ~7 s per controller)")
     p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
-            "(Optuna TPE, mean position RMSE)", cmd_tune_baselines, show_tune_baselines)
+            "and their undamped twins (Optuna TPE, mean position RMSE; unstable counts as "
+            "failed)", cmd_tune_baselines, show_tune_baselines)
     p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
     p.add_argument("--config", default=None, metavar="YAML",
                    help="PPO config whose training scenario gives the plants "
                         "(default: the robust one, agents.tune_baselines.DEFAULT_CONFIG)")
     p.add_argument("--n-trials", type=int, default=80, metavar="N", help="Optuna trials each")
     p.add_argument("--n-plants", type=int, default=16, metavar="N",
-                   help="plants drawn from the training ranges")
+                   help="plants drawn from the training ranges (each adds its undamped twin)")
     p.add_argument("--seed", type=int, default=0, help="plant draws and sampler seed")
     p = add("tune", "tune hyper-parameters on Optuna; workers sharing --storage and --study-name "
             "share the study", cmd_tune, show_tune)

@@ -13,8 +13,18 @@ from numpy.testing import assert_allclose
 import mpa_gym  # noqa: F401
 from agents.baselines import make_baseline
 from agents.evaluate import evaluate, metrics, run_episode, write_report
-from agents.robustness import Grid, cell_metrics, held_out, robustness, run_batch, run_batches
-from mpa_gym.analysis.scenario import Impulse
+from agents.robustness import (
+    Grid,
+    _scenario,
+    cell_metrics,
+    held_out,
+    no_harm,
+    no_harm_markdown,
+    robustness,
+    run_batch,
+    run_batches,
+)
+from mpa_gym.analysis.scenario import Impulse, load_scenario
 
 SHORT = {"name": "short", "duration_s": 9.0}  # three periods: the metric window is the episode
 PLANTS = [{"pressure_dead_time_s": 0.0137, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5},
@@ -99,7 +109,8 @@ def test_report_holds_the_sweep_in_json_markdown_and_heatmaps(tmp_path):
     rep["robustness"] = robustness(  # what evaluate(robustness=True) adds, on a short run
         ["ff", "pid"], SHORT, grids=small,
         levels={"hard": {"pressure_dead_time_s": 0.03, "extra_mass_kg": 1.6}},
-        kick=Impulse(t_s=2.0, force_N=30.0, duration_s=0.05))
+        kick=Impulse(t_s=2.0, force_N=30.0, duration_s=0.05),
+        kicks={"load": {"extra_mass_kg": 1.6}})
     paths = write_report(rep, tmp_path)
     data = json.loads(paths["json"].read_text())["robustness"]
     tiny = data["grids"]["tiny"]
@@ -107,8 +118,14 @@ def test_report_holds_the_sweep_in_json_markdown_and_heatmaps(tmp_path):
     assert set(tiny["controllers"]) == {"ff", "pid"}
     assert {"position_rmse_mm", "unstable", "terminated"} <= set(tiny["controllers"]["ff"][0][0])
     assert set(data["levels"]["hard"]) == {"ff", "pid"}
+    # the kick alone on a 1.6 kg load: pid brings the error back under 1 mm, ff never does
+    # (its sag under the load is ~34 mm)
+    kick = data["kicks"]["load"]
+    assert kick["ff"]["recovery_s"] == "never" and 0.0 < kick["pid"]["recovery_s"] < 7.0
+    assert data["kicks_plants"] == {"load": {"extra_mass_kg": 1.6}}
     md = paths["markdown"].read_text()
     assert "## Robustness sweep" in md and "### tiny" in md and "| hard |" in md
+    assert "### Kicks" in md and "| load | extra_mass_kg 1.6 |" in md
     assert paths["plot_robustness_tiny"].stat().st_size > 10_000
 
 
@@ -144,3 +161,67 @@ def test_controllers_sharing_one_batch_step_as_each_does_alone():
         assert np.array_equal(run["x"][:n], alone["x"], equal_nan=True)
         assert np.array_equal(run["x_ref"][:n], alone["x_ref"], equal_nan=True)
         assert np.isnan(run["x"][n:]).all()  # after the lone run ended: nothing recorded
+
+
+def test_no_harm_audit_names_every_broken_bound_and_nothing_else():
+    # Made-up figures [mm] with a known answer per case: the bounds are ff's RMSE and 1.5× the
+    # best of pid / mbfb, each raised to 0.05 mm, and stability where ff is stable.
+    def m(rmse, unstable=False):
+        return {"position_rmse_mm": rmse, "unstable": unstable, "terminated": rmse is None}
+
+    results = {
+        "fine": {"ff": m(0.0), "pid": m(0.001), "mbfb": m(0.03), "run": m(0.049)},  # floor
+        "worse_than_ff": {"ff": m(0.1), "pid": m(0.2), "mbfb": m(0.3), "run": m(0.12)},
+        "over_ratio": {"ff": m(10.0), "pid": m(0.5), "mbfb": m(0.9), "run": m(0.76)},
+        "at_ratio": {"ff": m(10.0), "pid": m(0.5), "mbfb": m(0.9), "run": m(0.75)},
+    }
+    rob = {"grids": {"g": {"rows": {"field": "pressure_dead_time_s", "values": [0.02]},
+                           "cols": {"field": "extra_mass_kg", "values": [0.0, 0.5]},
+                           "controllers": {"ff": [[m(1.0), m(10.0)]],
+                                           "pid": [[m(9.0, True), m(0.4)]],
+                                           "mbfb": [[m(None), m(0.3)]],
+                                           "run": [[m(0.9, True), m(None)]]}}},
+           "levels": {}, "kicks": {"k": {"ff": m(30.0), "pid": m(0.5), "mbfb": m(0.04),
+                                         "run": m(0.07)}}}
+    audit = no_harm(results, rob, ["run"])["run"]
+    assert audit["checked"] == 7
+    got = {h["case"]: h["reasons"] for h in audit["harm"]}
+    ratio = "over 1.5× the best feedback baseline"
+    assert got == {
+        "scenario worse_than_ff": ["worse than ff"],
+        "scenario over_ratio": [ratio],
+        # stable-looking figures do not excuse a limit cycle the feedforward does not have
+        "g pressure_dead_time_s 0.02, extra_mass_kg 0": ["unstable where ff is stable"],
+        "g pressure_dead_time_s 0.02, extra_mass_kg 0.5": ["worse than ff", ratio],
+        "kick k": [ratio],  # 0.07 > max(1.5 × 0.04, 0.05)
+    }
+    term = next(h for h in audit["harm"] if h["case"].endswith("extra_mass_kg 0.5"))
+    assert term["position_rmse_mm"] is None and term["best_feedback_mm"] == 0.3
+    md = "\n".join(no_harm_markdown({"run": audit}))
+    assert "**run**: 5 of 7 cases break a bound." in md
+    assert "| g pressure_dead_time_s 0.02, extra_mass_kg 0.5 | terminated | 10.000 | 0.300 |" \
+        in md
+    # nothing to audit without the feedforward or a feedback baseline in the report
+    assert no_harm({"s": {"pid": m(0.1), "run": m(9.0)}}, None, ["run"]) == {}
+    assert no_harm(results, rob, []) == {}
+
+
+def test_tuned_pid_is_stable_on_a_slow_regulator_that_undid_the_old_gains():
+    # The issue's first plant: 20 ms regulator dead time, 30 ms lag, a 0.02 bar quantum and a
+    # 0.5 kg load, and the same regulator on the unloaded leg (a lighter leg is the less stable
+    # one). The gains tuned with undamped twins hold both, on the loaded leg with an error
+    # under a tenth of the feedforward's (~10.5 mm); the gains tuned on the draws alone (Kd ~13×
+    # the leg's critical damping) oscillate on the unloaded one, the check that these plants
+    # tell the two apart.
+    sc = _scenario(load_scenario({"name": "slow", "duration_s": 15.0}), "slow",
+                   {"pressure_quantum_bar": 0.02})
+    slow = {"pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03}
+    plants = [{**slow, "extra_mass_kg": 0.5}, slow]
+    tuned = make_baseline("pid", sc)
+    old = dataclasses.replace(tuned, kp_bar_per_m=16.25, ki_bar_per_m_s=759.8,
+                              kd_bar_s_per_m=7.886, tf_s=1.56e-4)
+    now, before, ff = (cell_metrics(r, 3.0, 0.01) for r in
+                       run_batches([tuned, old, make_baseline("ff", sc)], sc, plants, 0))
+    assert not now[0]["unstable"] and not now[1]["unstable"]
+    assert now[0]["position_rmse_mm"] < 0.1 * ff[0]["position_rmse_mm"]
+    assert before[1]["unstable"] and not ff[1]["unstable"]
