@@ -40,9 +40,9 @@ from mpa_gym.analysis.scenario import Scenario, load_scenario
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual_robust.yaml"
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
-# The undamped twin of a plant (module docstring): field -> the range end it takes ("low" /
-# "high") or a value; the leg's damping at the low end, friction and the rate limit off (a slew
-# of 0 is an unlimited regulator).
+# The undamped twin of a plant (module docstring): field -> "low" (the low end of its range) or
+# a value; the leg's damping at the low end, friction and the rate limit off (a slew of 0 is an
+# unlimited regulator).
 UNDAMPED: dict[str, str | float] = {"gamma_Ns_per_m": "low", "braid_friction_ratio": 0.0,
                                     "slider_friction_N": 0.0, "slider_viscous_Ns_per_m": 0.0,
                                     "pressure_slew_bar_per_s": 0.0}
@@ -73,15 +73,14 @@ def training_plants(config: str | Path = DEFAULT_CONFIG, n_plants: int = 16, see
 
 def undamped(plant: dict[str, float], ranges: dict[str, tuple[float, float]]
              ) -> dict[str, float]:
-    """``plant`` with ``UNDAMPED``'s fields set: a range end for the fields the ranges draw
-    (others keep the scenario's value), a value for the rest."""
+    """``plant`` with ``UNDAMPED``'s fields set: the low end for the "low" fields the ranges draw
+    (others keep the scenario's value), the value for the rest."""
     out = dict(plant)
     for k, v in UNDAMPED.items():
-        if isinstance(v, str):
-            if k in ranges:
-                out[k] = ranges[k][0 if v == "low" else 1]
-        else:
+        if v != "low":
             out[k] = v
+        elif k in ranges:
+            out[k] = ranges[k][0]
     return out
 
 
