@@ -42,7 +42,7 @@ from agents.baselines import Policy
 from agents.config import EVAL_SEED
 from agents.evaluate import eval_task
 from agents.policies import load_policy
-from mpa_gym.analysis.scenario import Impulse, Plant, Scenario, load_scenario
+from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
 METRIC_PERIODS = 3
@@ -103,7 +103,7 @@ FEEDBACK_BASELINES = ("pid", "mbfb")
 def _scenario(base: Scenario, name: str, rig: dict[str, float],
               disturbances: tuple[Impulse, ...] = ()) -> Scenario:
     return dataclasses.replace(base, name=name, plant=Plant(**rig), disturbances=disturbances,
-                               randomize=dataclasses.replace(base.randomize, ranges=()))
+                               randomize=Randomization())
 
 
 def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], seed: int
@@ -218,7 +218,7 @@ def training_ranges(spec: str) -> dict[str, tuple[float, float]] | None:
     _, _, cfg = load_policy(spec)
     sc = load_scenario(cfg.env_kwargs["scenario"])
     ranges = {k: (v, v) for k, v in dataclasses.asdict(sc.plant).items() if v is not None}
-    ranges.update({k: (lo, hi) for k, lo, hi in sc.randomize.ranges})
+    ranges.update(sc.randomize.span(sc.plant))
     return ranges
 
 

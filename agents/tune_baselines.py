@@ -36,7 +36,7 @@ import numpy as np
 from agents.baselines import make_baseline
 from agents.config import load_config
 from agents.robustness import cell_metrics, run_batch
-from mpa_gym.analysis.scenario import Scenario, load_scenario
+from mpa_gym.analysis.scenario import Randomization, Scenario, load_scenario
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual_robust.yaml"
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
@@ -67,7 +67,7 @@ def training_plants(config: str | Path = DEFAULT_CONFIG, n_plants: int = 16, see
     ranges = {k: (lo, hi) for k, lo, hi in sc.randomize.ranges}
     plants += [undamped(p, ranges) for p in plants]
     base = dataclasses.replace(sc, duration_s=episode_s,
-                               randomize=dataclasses.replace(sc.randomize, ranges=()))
+                               randomize=Randomization())
     return base, plants
 
 
@@ -126,10 +126,9 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
             "default_mean_position_rmse_mm": study.trials[0].value,
             "tuned_on": {"config": str(config), "n_plants": n_plants, "plant_seed": seed,
                          "undamped_twins": UNDAMPED,
-                         "episode_s": episode_s, "randomize": {
-                             k: [lo, hi] for k, lo, hi in
-                             load_scenario(load_config(config).env_kwargs["scenario"])
-                             .randomize.ranges},
+                         "episode_s": episode_s,
+                         "randomize": load_scenario(load_config(config).env_kwargs["scenario"])
+                         .randomize.as_dict(),
                          "objective": "mean position RMSE over the plants, last 3 periods "
                                       f"(unstable or terminated: {FAILED_MM:g} mm)",
                          "budget": f"{n_trials} Optuna TPE trials (seed {seed})"}}

@@ -197,6 +197,12 @@ def test_leaving_the_model_domain_raises_and_keeps_the_partial_run():
          r"randomize: unknown key\(s\) \['encoder_resolution_m'\]"),
         (lambda: Randomization((("mass_kg", -1.0, 4.0),)), r"randomize.mass_kg=-1 kg is outside"),
         (lambda: Randomization.from_dict({"mass_kg": 4.0}), r"must be a \[low, high\] pair"),
+        (lambda: Randomization.from_dict({"mass_kg": {"range": [3, 4], "p_off": 1.5}}),
+         r"randomize.mass_kg.p_off=1.5 is outside the allowed range \[0, 1\]"),
+        (lambda: Randomization.from_dict({"mass_kg": {"range": [3, 4], "p_of": 0.5}}),
+         r"randomize.mass_kg=.* must be \{range: \[low, high\], p_off: p\}"),
+        (lambda: Randomization((("mass_kg", 3.0, 4.0),), (("C1_Pa", 0.5),)),
+         r"randomize.C1_Pa.p_off: 'C1_Pa' has no range to draw from"),
     ],
 )
 def test_the_scenario_dataclasses_validate_themselves(make, match):
@@ -209,6 +215,31 @@ def test_every_plant_field_has_a_range_and_values_become_floats():
     p = Plant(mass_kg=4, extra_mass_kg=np.float32(0.5))
     assert type(p.mass_kg) is float and type(p.extra_mass_kg) is float
     assert Randomization((("mass_kg", 3, 4),)).ranges == (("mass_kg", 3.0, 4.0),)
+
+
+def test_p_off_leaves_a_field_at_the_plants_value_that_often_and_keeps_the_other_draws():
+    """A field with p_off is absent from a fraction p_off of the draws (binomial: 4000 draws at
+    p = 0.3 have a standard deviation of 0.0072, the bound is 5 of them); the fields without one
+    draw the values they draw without any p_off from the same seed."""
+    plain = Randomization.from_dict({"mass_kg": [3.5, 4.2], "pressure_dead_time_s": [0.0, 0.03],
+                                     "extra_mass_kg": [0.0, 1.0]})
+    off = Randomization.from_dict({"mass_kg": [3.5, 4.2],
+                                   "pressure_dead_time_s": {"range": [0.0, 0.03], "p_off": 0.3},
+                                   "extra_mass_kg": [0.0, 1.0]})
+    assert Randomization.from_dict(off.as_dict()) == off
+    n, absent = 4000, 0
+    for i in range(n):
+        a, b = plain.sample(np.random.default_rng(i)), off.sample(np.random.default_rng(i))
+        assert b["mass_kg"] == a["mass_kg"] and b["extra_mass_kg"] == a["extra_mass_kg"]
+        absent += "pressure_dead_time_s" not in b
+    assert abs(absent / n - 0.3) < 5 * 0.0072
+    # the episode then keeps the scenario's value: off by default, the nominal for a model field
+    sc = load_scenario({"name": "s", "duration_s": 1.0, "randomize": {
+        "pressure_dead_time_s": {"range": [0.01, 0.03], "p_off": 1.0},
+        "mass_kg": {"range": [3.9, 4.2], "p_off": 0.5}}})
+    assert sc.randomize.sample(np.random.default_rng(0)).get("pressure_dead_time_s") is None
+    assert sc.randomize.span(sc.plant) == {"pressure_dead_time_s": (0.0, 0.03),
+                                           "mass_kg": (DEFAULT_PARAMS.leg.m, 4.2)}
 
 
 def test_one_design_builder_serves_scenarios_plans_and_the_cli(capsys):

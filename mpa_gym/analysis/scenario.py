@@ -180,9 +180,16 @@ def check_plant_value(key: str, value: Any, where: str = "plant") -> float:
 
 @dataclass(frozen=True)
 class Randomization:
-    """Per-episode uniform ranges (low, high) for plant fields and initial-state offsets."""
+    """Per-episode uniform ranges (low, high) for plant fields and initial-state offsets.
+
+    ``p_off`` gives a field a probability of being left out of a draw, so that the episode keeps
+    the scenario's ``plant`` value (for a plant effect: off). Uniform draws of a dozen effects
+    rarely give a plant with one effect strong and the others off (a long dead time without
+    friction to damp it); ``p_off`` makes such plants common.
+    """
 
     ranges: tuple[tuple[str, float, float], ...] = ()
+    p_off: tuple[tuple[str, float], ...] = ()  # (field, probability of no draw)
 
     def __post_init__(self) -> None:
         checked = []
@@ -199,21 +206,72 @@ class Randomization:
                 raise ScenarioError(f"randomize.{k}=[{lo:g}, {hi:g}]: low must be <= high")
             checked.append((k, lo, hi))
         object.__setattr__(self, "ranges", tuple(checked))
+        drawn = {k for k, _, _ in checked}
+        off = []
+        for entry in self.p_off:
+            if not (isinstance(entry, tuple | list) and len(entry) == 2):
+                raise ScenarioError(f"randomize: {entry!r} must be a (field, p_off) pair")
+            k, p = entry
+            if k not in drawn:
+                raise ScenarioError(f"randomize.{k}.p_off: {k!r} has no range to draw from")
+            if isinstance(p, bool) or not isinstance(p, int | float | np.floating | np.integer):
+                raise ScenarioError(f"randomize.{k}.p_off={p!r} must be a number")
+            try:
+                off.append((k, check_range(f"randomize.{k}.p_off", p, 0.0, 1.0)))
+            except ValueError as e:
+                raise ScenarioError(str(e)) from None
+        object.__setattr__(self, "p_off", tuple(off))
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Randomization:
-        """From the YAML form {field: [low, high]}."""
+        """From the YAML form {field: [low, high]} or {field: {range: [low, high], p_off: p}}."""
+        ranges, p_off = [], []
         for k, v in d.items():
+            if isinstance(v, dict):
+                unknown = sorted(set(v) - {"range", "p_off"})
+                if unknown or "range" not in v:
+                    raise ScenarioError(f"randomize.{k}={v!r} must be {{range: [low, high], "
+                                        f"p_off: p}} (p_off optional)")
+                if "p_off" in v:
+                    p_off.append((k, v["p_off"]))
+                v = v["range"]
             if not (isinstance(v, list | tuple) and len(v) == 2):
                 raise ScenarioError(f"randomize.{k}={v!r} must be a [low, high] pair")
-        return cls(tuple((k, v[0], v[1]) for k, v in d.items()))
+            ranges.append((k, v[0], v[1]))
+        return cls(tuple(ranges), tuple(p_off))
 
-    def as_dict(self) -> dict[str, list[float]]:
-        return {k: [lo, hi] for k, lo, hi in self.ranges}
+    def as_dict(self) -> dict[str, Any]:
+        off = dict(self.p_off)
+        return {k: {"range": [lo, hi], "p_off": off[k]} if k in off else [lo, hi]
+                for k, lo, hi in self.ranges}
 
     def sample(self, rng: np.random.Generator) -> dict[str, float]:
-        """One draw: {field: value} (fields in the order given)."""
-        return {k: float(rng.uniform(lo, hi)) for k, lo, hi in self.ranges}
+        """One draw: {field: value} (fields in the order given; a field left out by its
+        ``p_off`` is absent). The values are drawn first and the ``p_off`` coins after them,
+        so adding a ``p_off`` leaves every field's value as it was."""
+        draw = {k: float(rng.uniform(lo, hi)) for k, lo, hi in self.ranges}
+        for k, p in self.p_off:
+            if rng.random() < p:
+                del draw[k]
+        return draw
+
+    def span(self, plant: Plant, params: Params = DEFAULT_PARAMS
+             ) -> dict[str, tuple[float, float]]:
+        """The smallest interval of each field's draws: its range, widened to the value the
+        episode keeps where ``p_off`` leaves the field out (the scenario's ``plant`` value, the
+        nominal ``params`` where that is unset, 0 for an initial offset)."""
+        off = dict(self.p_off)
+        nominal = {"mass_kg": params.leg.m, "gamma_Ns_per_m": params.mpa.gamma,
+                   "C1_Pa": params.mpa.C1, "C2_Pa": params.mpa.C2,
+                   "thickness_m": params.mpa.thickness}
+        span = {}
+        for k, lo, hi in self.ranges:
+            if off.get(k, 0.0) > 0.0:
+                kept = getattr(plant, k, 0.0)
+                kept = nominal[k] if kept is None else kept
+                lo, hi = min(lo, kept), max(hi, kept)
+            span[k] = (lo, hi)
+        return span
 
 
 @dataclass(frozen=True)
