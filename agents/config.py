@@ -45,7 +45,8 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "clip_range", "clip_range_vf", "normalize_advantage", "ent_coef", "vf_coef",
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed",
-                "tune"}  # tune: the search space of `mpa-gym tune` (agents/tune.py)
+                "tune",  # tune: the search space of `mpa-gym tune` (agents/tune.py)
+                "supervisor"}  # run-time assurance of the trained policy (agents/supervisor.py)
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
 OBS_WRAPPER = "agents.wrappers.TrackingErrorObservation"
 ACTION_WRAPPER = "agents.wrappers.ForceStiffnessAction"
@@ -89,6 +90,9 @@ class TrainConfig:
     eval_freq: int = 100_000  # env steps between evaluations
     checkpoint_freq: int = 500_000  # env steps between checkpoints
     eval_seed: int = EVAL_SEED  # seeds of evaluation episodes (no training env uses them)
+    # a fallback that takes over from the trained policy when it fails (SupervisorSpec's keys);
+    # None: the policy runs alone
+    supervisor: Any = None
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
     source: str = "config"  # where the settings came from (prefixes error messages)
 
@@ -119,6 +123,13 @@ class TrainConfig:
         if not isinstance(self.eval_scenarios, list):
             raise ConfigError(f"{h}.eval_scenarios={self.eval_scenarios!r} must be a list of "
                               "scenario names, paths or mappings")
+        if self.supervisor is not None:
+            from agents.supervisor import SupervisorSpec
+
+            try:
+                self.supervisor = SupervisorSpec.from_config(self.supervisor)
+            except ValueError as e:
+                raise ConfigError(f"{h}.{e}") from None
         from mpa_gym.analysis.scenario import load_scenario
 
         for i, sc in enumerate(self.eval_scenarios):

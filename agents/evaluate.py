@@ -10,7 +10,9 @@ window `mpa-gym simulate` uses) unless said otherwise:
 - ``saturation_pct``: share of all steps whose command the safety layer clipped to [0, p_max];
 - ``recovery_s``: after the first impulse ends, the time until |X − X̂| stays below 1 mm
   (``None`` without an impulse, ``inf`` if it never does);
-- ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds.
+- ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds;
+- ``fallback_s``: for a run under a ``supervisor`` (``agents.supervisor``), the time its
+  fallback took over (``None``: it never did, or the controller has no supervisor).
 
 With ``robustness=True`` the report also holds the robustness sweep of ``agents.robustness``
 (grids of real-rig effects, easy / medium / hard levels) with its heatmaps.
@@ -32,6 +34,7 @@ from agents.baselines import BASELINES, Policy, stack
 from agents.config import EVAL_SEED
 from agents.policies import load_policy
 from agents.seeds import group_runs, require_stats
+from agents.supervisor import first_take_over, took_over
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.task.contract import SAFETY_CLIPPED
@@ -56,6 +59,7 @@ class Trace:
     clipped: np.ndarray  # bool
     rewards: np.ndarray
     terminated: bool
+    fallback: np.ndarray | None = None  # bool per step: a supervisor's fallback drove it
 
 
 def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any] | None = None
@@ -65,9 +69,12 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any]
     state, start = None, np.array([True])
     rows: list[tuple[Any, ...]] = []
     rewards = []
+    fallback: list[bool] = []
     terminated = False
     while True:
         action, state = policy.predict(obs, state, start, deterministic=True)
+        if (flags := took_over(policy, state)) is not None:
+            fallback.append(bool(flags[0]))
         start = np.array([False])
         obs, r, terminated, truncated, info = env.step(action)
         rows.append((info["t_s"], info["x_m"], info["x_ref_m"], info["k_N_per_m"],
@@ -79,7 +86,7 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any]
     cols = list(zip(*rows, strict=True))
     return Trace(np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]),
                  np.array(cols[4]), np.array(cols[5]), np.array(cols[6]), np.array(cols[7]),
-                 np.array(rewards), bool(terminated))
+                 np.array(rewards), bool(terminated), np.array(fallback) if fallback else None)
 
 
 @dataclass
@@ -127,6 +134,7 @@ def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
     live = np.ones(n, dtype=bool)
     cols: list[list[Any]] = [[] for _ in range(n)]
     rewards: list[list[float]] = [[] for _ in range(n)]
+    fallback: list[list[bool]] = [[] for _ in range(n)]
     terminated = np.zeros(n, dtype=bool)
     first = True
     while live.any():
@@ -135,9 +143,12 @@ def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
             start = np.full(len(idx), first)
             a, states[pid] = jobs[idx[0]].policy.predict(batch, states[pid], start,
                                                          deterministic=True)
+            flags = took_over(jobs[idx[0]].policy, states[pid])
             for k, i in enumerate(idx):
                 g, r = where[i]
                 actions[g][r] = a[k]
+                if flags is not None and live[i]:
+                    fallback[i].append(bool(flags[k]))
         first = False
         for g, venv in enumerate(envs):
             obs, rew, term, trunc, info = venv.step(actions[g])
@@ -163,7 +174,8 @@ def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
         c = list(zip(*cols[i], strict=True))
         out.append(Trace(np.array(c[0]), np.array(c[1]), np.array(c[2]), np.array(c[3]),
                          np.array(c[4]), np.array(c[5]), np.array(c[6]), np.array(c[7]),
-                         np.array(rewards[i]), bool(terminated[i])))
+                         np.array(rewards[i]), bool(terminated[i]),
+                         np.array(fallback[i]) if fallback[i] else None))
     return out
 
 
@@ -189,6 +201,7 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
         "recovery_s": recovery,
         "return": float(trace.rewards.sum()),
         "terminated": trace.terminated,
+        "fallback_s": first_take_over(trace.t, trace.fallback),
     }
 
 
@@ -248,6 +261,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     report = {"results": results, "traces": traces, "seed": seed,
               "learning": learning_speed(policies, results),
               "controllers": {_label(p): tuned_on(p) for p in policies},
+              "supervisors": {_label(p): cfg.supervisor.describe()
+                              for p, (_, _, cfg) in learned.items() if cfg.supervisor},
               "groups": seed_groups(groups, results)}
     if robustness:
         from agents.robustness import robustness as sweep
@@ -310,12 +325,12 @@ def tuned_on(spec: str) -> str:
         from agents.policies import load_policy
 
         policy, _, cfg = load_policy(spec)
-        sc = cfg.env_kwargs.get("scenario", "nominal")
-        rnd = sc.get("randomize", {}) if isinstance(sc, dict) else {}
-        ranges = ", ".join(f"{k} {lo:g}–{hi:g}" for k, (lo, hi) in rnd.items())
+        from mpa_gym.analysis.scenario import load_scenario
+
+        rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
         steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
         return (f"PPO, {steps} env steps on the training scenario of its config "
-                f"(randomize: {ranges or 'none'})")
+                f"(randomize: {rnd.describe()})")
     return "–"
 
 
@@ -326,7 +341,8 @@ def _label(spec: str) -> str:
 COLUMNS = [("position_rmse_mm", "position RMSE [mm]"), ("position_max_mm", "max |X − X̂| [mm]"),
            ("stiffness_rmse_pct", "stiffness RMSE [% of k̂]"),
            ("saturation_pct", "pressure saturation [% of steps]"),
-           ("recovery_s", "recovery after impulse [s]"), ("return", "return")]
+           ("recovery_s", "recovery after impulse [s]"), ("return", "return"),
+           ("fallback_s", "supervisor's fallback took over at [s]")]
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -350,8 +366,12 @@ def markdown(report: dict[str, Any]) -> str:
     out.append("")
     if report.get("controllers"):
         out += ["## Controllers", "", "| controller | tuned / trained on |", "|---|---|"]
-        out += [f"| {c} | {d} |" for c, d in report["controllers"].items()] + [""]
+        sup = report.get("supervisors") or {}
+        out += [f"| {c} | {d}" + (f"; under a supervisor: {sup[c]}" if c in sup else "") + " |"
+                for c, d in report["controllers"].items()] + [""]
     for key, title in COLUMNS:
+        if key == "fallback_s" and not report.get("supervisors"):
+            continue
         names = ctrls + [f"{g} (IQM [95 % CI])" for g in groups]
         out += [f"## {title}", "", "| scenario | " + " | ".join(names) + " |",
                 "|---|" + "---|" * len(names)]
@@ -368,6 +388,8 @@ def markdown(report: dict[str, Any]) -> str:
                 if f"{key}_ci" in a:
                     lo, hi = a[f"{key}_ci"]
                     cell += f" [{lo:.3f}, {hi:.3f}]"
+                if key == "fallback_s":
+                    cell = f"in {a['fallback_runs']} of {a['n_runs']} runs"
                 if a["terminated"]:
                     cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
                 cells.append(cell)
@@ -443,6 +465,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     data = {"seed": report["seed"], "results": _finite(report["results"]),
             "learning": report.get("learning", {}),
             "controllers": report.get("controllers", {}),
+            "supervisors": report.get("supervisors", {}),
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = plot(report, out / "plots")
     if report.get("robustness"):

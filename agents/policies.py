@@ -195,15 +195,32 @@ def check_control_period(cfg: TrainConfig, dt_s: float, run: str | Path) -> None
                          f"--control-hz {1.0 / run_dt:g}")
 
 
+def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | None = None
+              ) -> Policy:
+    """``policy`` under the run-time assurance of its config's ``supervisor``
+    (``agents.supervisor``): the fallback baseline is built for the env of ``env_kwargs``
+    (scenario, stiffness; task settings over the run's own), else for the run's training env."""
+    from agents.supervisor import Supervised
+    from mpa_gym.analysis.scenario import load_scenario
+
+    kw = {**cfg.env_kwargs, **{k: v for k, v in (env_kwargs or {}).items() if v is not None}}
+    task = {**(cfg.env_kwargs.get("task") or {}), **((env_kwargs or {}).get("task") or {})}
+    scenario = kw.get("scenario", "nominal")
+    fallback = make_baseline(cfg.supervisor.fallback, scenario, kw.get("stiffness"), task)
+    return Supervised(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
+                      load_scenario(scenario).reference.period, cfg.supervisor)
+
+
 def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False
                 ) -> tuple[Policy, str, Any]:
     """(policy, env id, run config or None) for ``ff`` / ``pid`` / ``mbfb``, ``excite`` (the
     identification excitation) or a run folder.
 
     Baselines are built for the env made with ``env_kwargs`` (scenario, stiffness, task); a run
-    is loaded ``deployed`` (``load_run``) when asked, and refused (``check_control_period``,
-    before its model is loaded) when ``env_kwargs`` sets a ``task.dt_s`` (the control period it
-    will run at: rollout's ``--control-hz``) other than its training one.
+    is loaded ``deployed`` (``load_run``) when asked, wrapped in its config's ``supervisor``
+    if it has one (:func:`supervise`), and refused (``check_control_period``, before its model
+    is loaded) when ``env_kwargs`` sets a ``task.dt_s`` (the control period it will run at:
+    rollout's ``--control-hz``) other than its training one.
     """
     if spec == "excite":  # system-identification excitation (agents.excite)
         from agents.excite import ExcitePolicy
@@ -224,6 +241,8 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
 
             check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
         policy, cfg = load_run(spec, deployed=deployed)
+        if cfg.supervisor is not None:
+            policy = supervise(policy, cfg, env_kwargs)
         return policy, cfg.env_id, cfg
     raise ValueError(f"policy={spec!r} is neither a baseline {sorted(BASELINES)} nor a run "
                      "folder")

@@ -42,6 +42,7 @@ from agents.baselines import Policy
 from agents.config import EVAL_SEED
 from agents.evaluate import eval_task
 from agents.policies import load_policy
+from agents.supervisor import first_take_over, took_over
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
@@ -110,7 +111,8 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
               ) -> dict[str, np.ndarray]:
     """One episode of controller ``spec`` (a name, a run folder, or a policy object for
     ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
-    each step until the episode ends (NaN after a termination), and whether it terminated."""
+    each step until the episode ends (NaN after a termination), whether it terminated, and per
+    step whether a supervisor's fallback drove it (``agents.supervisor``; never, without one)."""
     return run_batches([spec], sc, plants, seed)[0]
 
 
@@ -144,6 +146,7 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
             x = np.full((steps, m * n), np.nan)
             xr = np.full((steps, m * n), np.nan)
             dead = np.zeros(m * n, dtype=bool)
+            fb = np.zeros((steps, m * n), dtype=bool)  # a supervisor's fallback drove the step
             states: list[Any] = [None] * m
             start = np.ones(n, dtype=bool)
             action = np.zeros((m * n, *venv.single_action_space.shape))
@@ -153,6 +156,8 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
                     a, states[b] = loaded[c][0].predict(obs[b * n:(b + 1) * n], states[b], start,
                                                         deterministic=True)
                     action[b * n:(b + 1) * n] = a
+                    if (flags := took_over(loaded[c][0], states[b])) is not None:
+                        fb[k, b * n:(b + 1) * n] = flags & ~dead[b * n:(b + 1) * n]
                 start = np.zeros(n, dtype=bool)
                 obs, _, term, trunc, info = venv.step(action)
                 xk, xrk = info["x_m"].copy(), info["x_ref_m"].copy()
@@ -171,7 +176,8 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
         for b, c in enumerate(members):
             legs = slice(b * n, (b + 1) * n)
             out[c] = {"t": dt * np.arange(1, rows_run + 1), "x": x[:rows_run, legs],
-                      "x_ref": xr[:rows_run, legs], "terminated": dead[legs]}
+                      "x_ref": xr[:rows_run, legs], "terminated": dead[legs],
+                      "fallback": fb[:rows_run, legs]}
     return out
 
 
@@ -181,16 +187,18 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
     e = run["x"] - run["x_ref"]
     out = []
     for i in range(e.shape[1]):
+        fallback_s = first_take_over(run["t"], run["fallback"][:, i]) if "fallback" in run \
+            else None
         if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
-                        "terminated": bool(run["terminated"][i])})
+                        "terminated": bool(run["terminated"][i]), "fallback_s": fallback_s})
             continue
         w = e[-METRIC_PERIODS * per:, i].reshape(METRIC_PERIODS, per)
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
                     "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
-                    "terminated": False})
+                    "terminated": False, "fallback_s": fallback_s})
     return out
 
 
@@ -346,10 +354,12 @@ def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[s
 
 
 def _cell(m: dict[str, Any]) -> str:
+    fb = m.get("fallback_s")
+    took = "" if fb is None else f" ‡{fb:.1f} s"
     if m["terminated"]:
-        return "terminated"
+        return "terminated" + took
     s = f"{m['position_rmse_mm']:.3f}"
-    return s + (" **unstable**" if m["unstable"] else "")
+    return s + (" **unstable**" if m["unstable"] else "") + took
 
 
 def markdown(rob: dict[str, Any]) -> list[str]:
@@ -359,7 +369,8 @@ def markdown(rob: dict[str, Any]) -> list[str]:
            "over the last three periods; **unstable**: the error's part that does not repeat "
            f"with the reference's period exceeds {rob['unstable_aperiodic_mm']:g} mm RMS (a "
            "limit cycle or a divergence); terminated: the leg left its bounds. A learned "
-           "controller's cells outside its training ranges are marked †.", ""]
+           "controller's cells outside its training ranges are marked †; ‡t s: its "
+           "supervisor's fallback took over at t s (the figure is the supervised loop's).", ""]
     for name, g in rob["grids"].items():
         rf, cf = g["rows"]["field"], g["cols"]["field"]
         out += [f"### {name}", "", f"Rows `{rf}`, columns `{cf}`; every cell also has "

@@ -227,6 +227,10 @@ def test_p_off_leaves_a_field_at_the_plants_value_that_often_and_keeps_the_other
                                    "pressure_dead_time_s": {"range": [0.0, 0.03], "p_off": 0.3},
                                    "extra_mass_kg": [0.0, 1.0]})
     assert Randomization.from_dict(off.as_dict()) == off
+    # the reports' one-line form (a run's "trained on"): every range, and p_off where set
+    assert off.describe() == ("mass_kg 3.5–4.2, pressure_dead_time_s 0–0.03 (off 0.3), "
+                              "extra_mass_kg 0–1")
+    assert Randomization().describe() == "none"
     n, absent = 4000, 0
     for i in range(n):
         a, b = plain.sample(np.random.default_rng(i)), off.sample(np.random.default_rng(i))

@@ -245,6 +245,12 @@ class Randomization:
         return {k: {"range": [lo, hi], "p_off": off[k]} if k in off else [lo, hi]
                 for k, lo, hi in self.ranges}
 
+    def describe(self) -> str:
+        """One line for reports: "field low–high (off p), …", or "none"."""
+        off = dict(self.p_off)
+        return ", ".join(f"{k} {lo:g}–{hi:g}" + (f" (off {off[k]:g})" if k in off else "")
+                         for k, lo, hi in self.ranges) or "none"
+
     def sample(self, rng: np.random.Generator) -> dict[str, float]:
         """One draw: {field: value} (fields in the order given; a field left out by its
         ``p_off`` is absent). The values are drawn first and the ``p_off`` coins after them,

@@ -1,0 +1,157 @@
+"""Run-time assurance for a learned residual: a fallback controller takes over when it fails.
+
+The Simplex architecture (Sha, "Using simplicity to control complexity", IEEE Software 2001;
+run-time assurance in the safe-RL literature): a high-performance controller that cannot be
+verified runs beside a simple one that can, and a monitor hands control to the simple one when
+the loop leaves the region where the first is known to behave. Here the learned residual is the
+high-performance controller and a tuned baseline (``pid``: stable on every cell of the
+robustness grids up to 30 ms of regulator dead time) the fallback. The monitor watches the
+tracking error e = X̂ − X for the two ways a destabilised loop shows itself:
+
+- a divergence: the running RMS of e over ``error_window_s``,
+  z_t = z_{t−1} + α (e_t² − z_{t−1}), α = dt / (window + dt), above ``error_mm``;
+- a limit cycle: the running RMS (over ``aperiodic_window_s``) of e_t − e_{t−T}, the error's
+  change over one reference period T, above ``aperiodic_mm``, from the third period on. A
+  stable loop settles onto a motion with the reference's period (a sag under a load, a phase
+  lag), which cancels in the difference; an oscillation at another frequency does not (for an
+  aperiodic part r of RMS ρ, e_t − e_{t−T} has RMS ≈ √2 ρ). This is the robustness sweep's
+  "unstable" criterion (``agents.robustness``) made causal. The first two periods are left out
+  because the difference would compare the settled loop with its start-up transient.
+
+Once either level is crossed, the fallback drives the rest of the episode (the latch never
+hands back: a residual that destabilised this plant once does it again). The fallback runs cold
+until then (its state reset every step) and starts from zero state when it takes over.
+
+Calibration of the defaults (``mpa-gym evaluate`` of the robust config's policy, 1 M steps, and
+the baselines, unsupervised): healthy loops stay below 2.2 mm aperiodic (a 30 N × 50 ms kick on
+the easy level; below 1.1 mm on every named and held-out scenario) and below 7.1 mm error RMS
+(the medium level; the initial-error scenario's 5 mm start 6.9 mm); the policy's limit cycles
+under 20–40 ms dead time reach 3.1–26 mm aperiodic, and the loops that leave the leg's bounds
+pass 15 mm error RMS in their first second. A trip on a healthy loop costs tracking quality
+(the fallback's instead of the policy's), never stability.
+
+``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
+rig rollouts run it unchanged; ``took_over(policy, state)`` says which rows the fallback drives,
+and the reports give the time it took over, so a figure never hides which controller earned it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from agents.baselines import Policy
+from mpa_gym.model.params import check_range
+from mpa_gym.task.contract import OBS_X as OX
+from mpa_gym.task.contract import OBS_XREF as OXR
+
+FALLBACKS = ("pid", "mbfb")
+ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
+
+
+@dataclass(frozen=True)
+class SupervisorSpec:
+    """A run config's ``mpa_gym.supervisor`` (its keys; module docstring)."""
+
+    fallback: str = "pid"  # the baseline that takes over
+    error_mm: float = 15.0  # [mm] running RMS of X̂ − X above which it takes over
+    error_window_s: float = 0.5  # [s] time constant of that running mean
+    aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
+    aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
+
+    def __post_init__(self) -> None:
+        if self.fallback not in FALLBACKS:
+            raise ValueError(f"supervisor.fallback={self.fallback!r}: allowed {list(FALLBACKS)}")
+        for key, hi, unit in (("error_mm", 100.0, "mm"), ("error_window_s", 30.0, "s"),
+                              ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
+            check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
+                        unit=unit)
+
+    @classmethod
+    def from_config(cls, value: Any) -> SupervisorSpec:
+        """The spec of a config's ``supervisor`` mapping (unknown keys refused by name)."""
+        if isinstance(value, cls):
+            return value
+        keys = [f.name for f in dataclasses.fields(cls)]
+        if not isinstance(value, dict):
+            raise ValueError(f"supervisor={value!r} must be a mapping with keys {keys}")
+        unknown = sorted(set(value) - set(keys), key=str)
+        if unknown:
+            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are {keys}")
+        return cls(**value)
+
+    def describe(self) -> str:
+        return (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
+                f"exceeds {self.error_mm:g} mm or, from the third period on, the RMS of its "
+                f"change over one period (over {self.aperiodic_window_s:g} s) exceeds "
+                f"{self.aperiodic_mm:g} mm")
+
+
+class Supervised:
+    """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
+    (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
+
+    State: (policy's, fallback's, monitor) with the monitor an (n, 4 + N) array per row:
+    running mean of e², running mean of (e_t − e_{t−T})², the latch, the steps taken, and the
+    last N = T / dt errors (a ring buffer)."""
+
+    def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
+                 spec: SupervisorSpec = SupervisorSpec()) -> None:
+        self.policy, self.fallback, self.dt, self.spec = policy, fallback, dt, spec
+        self.n_period = max(1, round(period_s / dt))
+        self.a_err = dt / (spec.error_window_s + dt)
+        self.a_ap = dt / (spec.aperiodic_window_s + dt)
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = True
+                ) -> tuple[np.ndarray, Any]:
+        obs = np.asarray(observation, dtype=np.float64)
+        single = obs.ndim == 1
+        rows = obs.reshape(1, -1) if single else obs
+        n, N = rows.shape[0], self.n_period
+        inner, fb, mon = (None, None, None) if state is None else state
+        mon = np.zeros((n, 4 + N)) if mon is None else np.array(mon, dtype=float)
+        if episode_start is not None:
+            mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        e = rows[:, OXR] - rows[:, OX]
+        k = mon[:, 3].astype(np.int64)
+        slot = 4 + k % N
+        past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
+        mon[:, 0] += self.a_err * (e**2 - mon[:, 0])
+        armed = k >= ARM_PERIODS * N
+        d2 = np.where(armed, (e - past) ** 2, 0.0)
+        mon[:, 1] += np.where(armed, self.a_ap * (d2 - mon[:, 1]), 0.0)
+        mon[np.arange(n), slot] = e
+        mon[:, 3] += 1
+        trip = ((np.sqrt(mon[:, 0]) > self.spec.error_mm * 1e-3)
+                | (np.sqrt(mon[:, 1]) > self.spec.aperiodic_mm * 1e-3))
+        mon[:, 2] = np.maximum(mon[:, 2], trip)
+        driving = mon[:, 2] > 0.0
+        one = (lambda a: a[0]) if single else (lambda a: a)
+        a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
+        # the fallback is kept cold (reset every step) until it takes over
+        b, fb = self.fallback.predict(observation, fb, one(~driving), deterministic)
+        out = np.where(driving[:, None], np.atleast_2d(b), np.atleast_2d(a)).astype(np.float32)
+        return (out[0] if single else out), (inner, fb, mon)
+
+    @staticmethod
+    def driving(state: Any) -> np.ndarray | None:
+        """Per row, whether the fallback drives (None before the first step)."""
+        return None if state is None else np.asarray(state[2])[:, 2] > 0.0
+
+
+def took_over(policy: Policy, state: Any) -> np.ndarray | None:
+    """Rows of a batch that a supervisor's fallback drives; None for an unsupervised policy."""
+    return Supervised.driving(state) if isinstance(policy, Supervised) else None
+
+
+def first_take_over(t: np.ndarray, flags: np.ndarray | None) -> float | None:
+    """[s] the time ``t`` of the first step of one episode whose flag is set; None if none is
+    (or there are no flags: an unsupervised controller)."""
+    if flags is None:
+        return None
+    hit = np.flatnonzero(flags)
+    return None if hit.size == 0 else float(t[hit[0]])

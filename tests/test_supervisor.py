@@ -1,0 +1,159 @@
+"""Run-time assurance (agents.supervisor): the fallback rescues a residual that destabilises
+the plant, never drives a healthy loop, and the config names what is wrong with a bad spec."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+import mpa_gym  # noqa: F401
+from agents.baselines import make_baseline
+from agents.config import ConfigError, parse_config
+from agents.evaluate import evaluate
+from agents.robustness import _scenario, cell_metrics, run_batches
+from agents.supervisor import ARM_PERIODS, Supervised, SupervisorSpec, took_over
+from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.task.contract import OBS_X, OBS_XREF, obs_names
+
+DT, T = 0.01, 3.0
+N_OBS = len(obs_names(residual=True))
+
+
+class Constant:
+    """A controller that always outputs ``value`` (to see which one drives)."""
+
+    def __init__(self, value: float) -> None:
+        self.value = value
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        obs = np.atleast_2d(observation)
+        a = np.full((obs.shape[0], 2), self.value, dtype=np.float32)
+        return (a[0] if np.ndim(observation) == 1 else a), state
+
+
+def _drive(sup: Supervised, errors: np.ndarray) -> np.ndarray:
+    """Feed observations with X̂ − X = errors[k, row]; the action's value per step and row."""
+    state, out = None, []
+    for k, e in enumerate(errors):
+        obs = np.zeros((errors.shape[1], N_OBS))
+        obs[:, OBS_XREF] = 0.8 + e
+        obs[:, OBS_X] = 0.8
+        a, state = sup.predict(obs, state, np.full(errors.shape[1], k == 0))
+        out.append(a[:, 0])
+    return np.array(out)
+
+
+def test_monitor_trips_on_an_aperiodic_oscillation_and_not_on_a_periodic_error():
+    # Row 0: a 10 mm-amplitude error with the reference's period (a sag and lag that repeat):
+    # its change over one period is zero and its RMS (7.1 mm) is under error_mm, so the
+    # policy keeps driving. Row 1: the same plus an oscillation of 3 mm RMS at 7.17 Hz, 21.5
+    # cycles per period: e_t − e_{t−T} is twice the oscillation (RMS 6 mm > aperiodic_mm 3 mm),
+    # and the fallback takes over once the monitor is armed (third period) and its running
+    # mean of the squared change (3 s time constant) has passed (3 mm)²:
+    # 1 − exp(−t / 3 s) > (3/6)², t > 3 s · ln(4/3) = 0.86 s (± the ripple at 2 × 7.17 Hz).
+    # Row 2: a 20 mm step (a divergence) trips the error monitor within its 0.5 s window:
+    # 1 − exp(−t / 0.5 s) > (15/20)², t > 0.5 s · ln 16/7 = 0.41 s.
+    t = DT * np.arange(round(5 * T / DT))
+    periodic = 0.010 * np.sin(2 * np.pi * t / T)
+    osc = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * (21.5 / T) * t)
+    errors = np.stack([periodic, periodic + osc, np.where(t >= 1.0, 0.02, 0.0)], axis=1)
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    drove = _drive(sup, errors) > 0.5
+    first = [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
+             for r in range(3)]
+    assert first[0] is None
+    assert ARM_PERIODS * T + 0.75 < first[1] < ARM_PERIODS * T + 1.0
+    assert 1.0 + 0.38 < first[2] < 1.0 + 0.45
+    assert np.all(drove[round(first[1] / DT):, 1])  # the latch never hands back
+
+
+def _sc(duration_s: float) -> object:
+    return _scenario(load_scenario({"name": "rig", "duration_s": duration_s}), "rig",
+                     {"pressure_quantum_bar": 0.02})
+
+
+def test_fallback_rescues_a_residual_that_destabilises_a_slow_regulator():
+    # A stiff PID (Kp 80 bar/m, Ki 3000 bar/(m s), Kd 12 bar s/m) as "the residual" on the
+    # issue's first plant (20 ms dead time, 30 ms lag, 0.02 bar quantum, +0.5 kg) and on a
+    # 40 ms regulator: alone it oscillates or leaves the bounds; supervised (tuned pid as the
+    # fallback) the loop is stable on both and within 1.5× (the no-harm ratio) of the tuned
+    # pid alone. The plants and the stiff gains are none the monitor's defaults were set on.
+    # The 20 ms loop's limit cycle is caught once the limit-cycle monitor is armed (after two
+    # periods); the 40 ms one diverges within the first period (the error monitor).
+    sc = _sc(21.0)
+    plants = [{"pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5},
+              {"pressure_dead_time_s": 0.04, "pressure_lag_s": 0.03, "extra_mass_kg": 1.0}]
+    pid = make_baseline("pid", sc)
+    stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
+                                kd_bar_s_per_m=12.0, tf_s=0.0)
+    sup = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    alone, supervised, reference = (cell_metrics(r, T, DT) for r in
+                                    run_batches([stiff, sup, pid], sc, plants, 7))
+    assert all(m["unstable"] for m in alone)
+    for s, ref in zip(supervised, reference, strict=True):
+        assert not s["unstable"] and not s["terminated"]
+        assert s["position_rmse_mm"] <= 1.5 * ref["position_rmse_mm"]
+        # in time for the metric window (the last three periods, from 21 − 9 = 12 s)
+        assert s["fallback_s"] is not None and s["fallback_s"] < 21.0 - 3 * T
+        assert ref["fallback_s"] is None  # an unsupervised controller reports none
+    assert ARM_PERIODS * T < supervised[0]["fallback_s"] and supervised[1]["fallback_s"] < T
+
+
+def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():
+    # The tuned pid under a supervisor (whose fallback would output the full residual) on
+    # scenarios a healthy loop meets: a 5 mm initial error, a 30 N impulse, a mass mismatch, a
+    # 1.6 kg load with the level kick and the friction grid's corner. The fallback never takes
+    # over and every figure is the pid's own, bit for bit.
+    scen = ["initial_error", "impulse", "mass_mismatch", "heldout_bladder"]
+    pid = make_baseline("pid", "nominal")
+    sup = Supervised(pid, Constant(1.0), DT, T)
+    rep = evaluate(["pid"], scen)["results"]
+    from agents.evaluate import Job, metrics, run_batch
+
+    jobs = [Job(load_scenario(s), sup, "MPALegResidual-v0", {}) for s in scen]
+    for s, tr in zip(scen, run_batch(jobs, 1_000_000), strict=True):
+        assert tr.fallback is not None and not tr.fallback.any()
+        m = metrics(tr, T, None)
+        assert m["fallback_s"] is None
+        assert m["position_rmse_mm"] == rep[s]["pid"]["position_rmse_mm"]
+    sc = _sc(15.0)
+    runs = run_batches([sup], sc, [{"extra_mass_kg": 1.6}, {"braid_friction_ratio": 0.05,
+                                                           "slider_friction_N": 3.0,
+                                                           "pressure_lag_s": 0.02}], 3)
+    assert not runs[0]["fallback"].any()
+
+
+def test_took_over_is_none_for_an_unsupervised_controller():
+    assert took_over(make_baseline("pid", "nominal"), None) is None
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    a, state = sup.predict(np.zeros(N_OBS))  # one observation in, one action out
+    assert a.shape == (2,) and not took_over(sup, state)[0]
+
+
+def _config(tmp_path, supervisor):
+    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    cfg["mpa_gym"]["supervisor"] = supervisor
+    return parse_config(cfg, "cfg.yaml")
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"fallback": "ff"}, r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb'\]"),
+    ({"trip": 3.0}, r"mpa_gym\.supervisor: unknown key\(s\) \['trip'\]; allowed keys"),
+    ({"aperiodic_mm": -1.0},
+     r"mpa_gym\.supervisor\.aperiodic_mm=-1 mm is outside the allowed range \(0, 100\] mm"),
+    ({"error_window_s": "1s"}, r"mpa_gym\.supervisor\.error_window_s='1s' is not a number"),
+    ("pid", r"mpa_gym\.supervisor='pid' must be a mapping"),
+])
+def test_config_names_the_bad_supervisor_field(tmp_path, bad, match):
+    with pytest.raises(ConfigError, match=match):
+        _config(tmp_path, bad)
+
+
+def test_config_supervisor_defaults_and_round_trip(tmp_path):
+    cfg = _config(tmp_path, {"fallback": "mbfb", "aperiodic_mm": 2.5})
+    assert cfg.supervisor == SupervisorSpec(fallback="mbfb", aperiodic_mm=2.5)
+    assert "mbfb takes over" in cfg.supervisor.describe()
+    assert _config(tmp_path, None).supervisor is None
