@@ -203,10 +203,13 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     from agents.supervisor import Supervised
     from mpa_gym.analysis.scenario import load_scenario
 
-    kw = {**cfg.env_kwargs, **{k: v for k, v in (env_kwargs or {}).items() if v is not None}}
-    task = {**(cfg.env_kwargs.get("task") or {}), **((env_kwargs or {}).get("task") or {})}
-    scenario = kw.get("scenario", "nominal")
-    fallback = make_baseline(cfg.supervisor.fallback, scenario, kw.get("stiffness"), task)
+    own, given = cfg.env_kwargs, env_kwargs or {}
+    task = {**(own.get("task") or {}), **(given.get("task") or {})}
+    scenario = given.get("scenario", own.get("scenario", "nominal"))
+    # a run trained on several designs (a list) has none of its own to give the fallback
+    stiffness = given.get("stiffness", None if isinstance(own.get("stiffness"), list)
+                          else own.get("stiffness"))
+    fallback = make_baseline(cfg.supervisor.fallback, scenario, stiffness, task)
     return Supervised(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
                       load_scenario(scenario).reference.period, cfg.supervisor)
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from agents.evaluate import Trace, metrics
 from agents.policies import load_policy
+from agents.supervisor import took_over
 from mpa_gym.hardware.env import (
     CONTROL_HZ,
     CONTROL_HZ_RANGE,
@@ -175,10 +176,18 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                 obs, info = env.reset(seed=seed + ep)
                 state, start = None, np.array([True])
                 rows: list[dict[str, Any]] = []
+                fell = False  # a supervisor's fallback has taken over this episode
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])
                     obs, r, term, trunc, info = env.step(action)
+                    if (flags := took_over(policy, state)) is not None:
+                        if flags[0] and not fell:  # the step it took over: say so in the log
+                            fell = True
+                            env.defer(functools.partial(_write, f, {
+                                "event": "fallback", "episode": ep, "t_s": info["t_s"],
+                                "supervisor": run_cfg.supervisor.describe()}))
+                        info = {**info, "fallback": bool(flags[0])}
                     # the record is written in the slack of the next period, after its command
                     # went out (env.defer), not between this telemetry and that command
                     record = functools.partial(_log_step, f, rows, ep, r, term, info)
@@ -240,6 +249,8 @@ def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv) -> dict[st
     tr = Trace(col("t_s"), col("x_m"), col("x_ref_m"), col("k_N_per_m"), col("k_ref_N_per_m"),
                col("pressure_bar"), col("pressure_cmd_bar"), (col("safety") & SAFETY_CLIPPED) > 0,
                col("reward"), bool(rows[-1]["terminated"]))
+    if "fallback" in rows[0]:  # a supervised run: which steps its fallback drove
+        tr.fallback = col("fallback")
     m = metrics(tr, env.plan.design.reference.period, None)
     if "fault" in rows[-1]:
         m["fault"] = rows[-1]["fault"]

@@ -8,13 +8,16 @@ import dataclasses
 import numpy as np
 import pytest
 import yaml
+from conftest import REALTIME, serving
 
 import mpa_gym  # noqa: F401
 from agents.baselines import make_baseline
 from agents.config import ConfigError, parse_config
 from agents.evaluate import evaluate
 from agents.robustness import _scenario, cell_metrics, run_batches
+from agents.rollout import read_log, rollout
 from agents.supervisor import ARM_PERIODS, Supervised, SupervisorSpec, took_over
+from agents.train import train
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.task.contract import OBS_X, OBS_XREF, obs_names
 
@@ -157,3 +160,34 @@ def test_config_supervisor_defaults_and_round_trip(tmp_path):
     assert cfg.supervisor == SupervisorSpec(fallback="mbfb", aperiodic_mm=2.5)
     assert "mbfb takes over" in cfg.supervisor.describe()
     assert _config(tmp_path, None).supervisor is None
+
+
+@REALTIME
+def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path):
+    # A run whose config asks for a supervisor with a hair trigger (0.05 mm of error RMS),
+    # rolled out on the device emulator (its own thread, real time) playing a rig the run was
+    # not trained on: 20 ms regulator dead time, 30 ms lag and an unmodelled 0.5 kg load (its
+    # sag is ~10 mm under the feedforward). The deployed policy comes supervised, the log has
+    # one "fallback" event naming the supervisor, the steps from it on are flagged, and the
+    # episode's metrics say when.
+    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    hp = cfg["MPALegResidual-v0"]
+    hp.update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=64, n_epochs=1)
+    hp["env_kwargs"]["task"]["episode_s"] = 0.5
+    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000,
+                          supervisor={"fallback": "pid", "error_mm": 0.05})
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
+    run = train(tmp_path / "cfg.yaml", tmp_path / "run", progress=False)
+    rig = {"name": "slow_rig", "duration_s": 3.0, "plant": {
+        "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5}}
+    log = tmp_path / "r.jsonl"
+    with serving(scenario=rig) as (url, _):
+        out = rollout(str(run), url, log, episode_s=3.0)
+    records = read_log(log)
+    events = [r for r in records if r.get("event") == "fallback"]
+    steps = [r for r in records if "reward" in r]  # the steps (not the events)
+    assert len(events) == 1 and events[0]["supervisor"].startswith("pid takes over")
+    first = next(i for i, r in enumerate(steps) if r["fallback"])
+    assert all(r["fallback"] for r in steps[first:])  # the latch holds to the end
+    assert events[0]["t_s"] == steps[first]["t_s"]
+    assert out["episodes"][0]["fallback_s"] == steps[first]["t_s"]
