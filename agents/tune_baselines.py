@@ -68,13 +68,18 @@ def training_plants(config: str | Path = DEFAULT_CONFIG, n_plants: int = 16, see
     doubled and went unstable from 20 ms of dead time on the unloaded leg."""
     sc = load_scenario(load_config(config).env_kwargs["scenario"])
     rng = np.random.default_rng(seed)
-    every = dataclasses.replace(sc.randomize, p_off=())
+    every = every_effect(sc.randomize)
     plants = [every.sample(rng) for _ in range(n_plants)]
     ranges = {k: (lo, hi) for k, lo, hi in sc.randomize.ranges}
     plants += [undamped(p, ranges) for p in plants]
     base = dataclasses.replace(sc, duration_s=episode_s,
                                randomize=Randomization())
     return base, plants
+
+
+def every_effect(randomize: Randomization) -> Randomization:
+    """``randomize`` with every field drawn in every draw (its ``p_off`` left out)."""
+    return dataclasses.replace(randomize, p_off=())
 
 
 def undamped(plant: dict[str, float], ranges: dict[str, tuple[float, float]]
@@ -133,10 +138,8 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
             "tuned_on": {"config": str(config), "n_plants": n_plants, "plant_seed": seed,
                          "undamped_twins": UNDAMPED,
                          "episode_s": episode_s,
-                         # the ranges drawn, every effect in every draw (training_plants)
-                         "randomize": dataclasses.replace(load_scenario(load_config(config)
-                                                                        .env_kwargs["scenario"])
-                                                          .randomize, p_off=()).as_dict(),
+                         "randomize": every_effect(load_scenario(
+                             load_config(config).env_kwargs["scenario"]).randomize).as_dict(),
                          "objective": "mean position RMSE over the plants, last 3 periods "
                                       f"(unstable or terminated: {FAILED_MM:g} mm)",
                          "budget": f"{n_trials} Optuna TPE trials (seed {seed})"}}
