@@ -19,8 +19,8 @@ tracking error e = X̂ − X for the two ways a destabilised loop shows itself:
   because the difference would compare the settled loop with its start-up transient.
 
 Once either level is crossed, the fallback drives the rest of the episode (the latch never
-hands back: a residual that destabilised this plant once does it again). The fallback runs cold
-until then (its state reset every step) and starts from zero state when it takes over.
+hands back: a residual that destabilised this plant once does it again). The fallback is not
+run until then, and starts from zero state when it takes over.
 
 Calibration of the defaults (``mpa-gym evaluate`` of the default config's policy and of the
 baselines, unsupervised): healthy loops stay below 2.2 mm of change per period (a 30 N × 50 ms
@@ -102,7 +102,7 @@ class Supervised:
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec()) -> None:
-        self.policy, self.fallback, self.dt, self.spec = policy, fallback, dt, spec
+        self.policy, self.fallback, self.spec = policy, fallback, spec
         self.n_period = max(1, round(period_s / dt))
         self.a_err = dt / (spec.error_window_s + dt)
         self.a_ap = dt / (spec.aperiodic_window_s + dt)
@@ -124,18 +124,19 @@ class Supervised:
         past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
         mon[:, 0] += self.a_err * (e**2 - mon[:, 0])
         armed = k >= ARM_PERIODS * N
-        d2 = np.where(armed, (e - past) ** 2, 0.0)
-        mon[:, 1] += np.where(armed, self.a_ap * (d2 - mon[:, 1]), 0.0)
+        mon[:, 1] += np.where(armed, self.a_ap * ((e - past) ** 2 - mon[:, 1]), 0.0)
         mon[np.arange(n), slot] = e
         mon[:, 3] += 1
         trip = ((np.sqrt(mon[:, 0]) > self.spec.error_mm * 1e-3)
                 | (np.sqrt(mon[:, 1]) > self.spec.aperiodic_mm * 1e-3))
         mon[:, 2] = np.maximum(mon[:, 2], trip)
         driving = mon[:, 2] > 0.0
-        one = (lambda a: a[0]) if single else (lambda a: a)
         a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
-        # the fallback is kept cold (reset every step) until it takes over
-        b, fb = self.fallback.predict(observation, fb, one(~driving), deterministic)
+        if not driving.any():  # the fallback runs only once it drives, from a cold start
+            return a, (inner, None, mon)
+        cold = ~driving if fb is not None else np.ones(n, dtype=bool)
+        b, fb = self.fallback.predict(observation, fb, cold[0] if single else cold,
+                                      deterministic)
         out = np.where(driving[:, None], np.atleast_2d(b), np.atleast_2d(a)).astype(np.float32)
         return (out[0] if single else out), (inner, fb, mon)
 
