@@ -46,7 +46,8 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed",
                 "tune",  # tune: the search space of `mpa-gym tune` (agents/tune.py)
-                "supervisor"}  # run-time assurance of the trained policy (agents/supervisor.py)
+                "supervisor",  # run-time assurance of the trained policy (agents/supervisor.py)
+                "anchor_at_rest"}  # mean action zero at zero features (agents/anchor.py)
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
 OBS_WRAPPER = "agents.wrappers.TrackingErrorObservation"
 ACTION_WRAPPER = "agents.wrappers.ForceStiffnessAction"
@@ -93,6 +94,8 @@ class TrainConfig:
     # a fallback that takes over from the trained policy when it fails (SupervisorSpec's keys);
     # None: the policy runs alone
     supervisor: Any = None
+    # the policy's mean action is exactly zero while every feature is zero (agents/anchor.py)
+    anchor_at_rest: bool = False
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
     source: str = "config"  # where the settings came from (prefixes error messages)
 
@@ -130,6 +133,11 @@ class TrainConfig:
                 self.supervisor = SupervisorSpec.from_config(self.supervisor)
             except ValueError as e:
                 raise ConfigError(f"{h}.{e}") from None
+        if not isinstance(self.anchor_at_rest, bool):
+            raise ConfigError(f"{h}.anchor_at_rest={self.anchor_at_rest!r} must be true or false")
+        if self.anchor_at_rest and not (self.observation_wrapper or {}).get("errors_only"):
+            raise ConfigError(f"{h}.anchor_at_rest=true needs {OBS_WRAPPER} with errors_only: "
+                              "true (the features are then all zero while tracking is exact)")
         from mpa_gym.analysis.scenario import load_scenario
 
         for i, sc in enumerate(self.eval_scenarios):

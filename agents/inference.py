@@ -234,6 +234,7 @@ class DeployedPolicy:
                      ) -> DeployedPolicy:
         """Export a ``LearnedPolicy`` (SB3 PPO model, VecNormalize, wrapper settings) of an env
         whose observation has ``obs_dim`` columns (8: ``MPALeg-v0``, 9: the residual env)."""
+        import torch
         import torch.nn as nn
         from stable_baselines3.common.torch_layers import FlattenExtractor
 
@@ -252,7 +253,11 @@ class DeployedPolicy:
             else:
                 acts.add(type(mod).__name__)
         an = pol.action_net
-        layers.append((an.weight.detach().double().numpy(), an.bias.detach().double().numpy()))
+        bias = an.bias.detach().double().numpy()
+        if hasattr(pol, "rest_offset"):  # RestAnchoredPolicy: μ = f(o) − f(o_rest), a constant
+            with torch.no_grad():
+                bias = bias - pol.rest_offset().double().numpy().reshape(-1)
+        layers.append((an.weight.detach().double().numpy(), bias))
         if len(acts) > 1:
             raise ValueError(f"mixed activations {sorted(acts)} cannot be deployed")
         activation = acts.pop() if acts else "Tanh"

@@ -54,8 +54,11 @@ class LearnedPolicy:
             pol.set_training_mode(False)
         with torch.no_grad():
             t = torch.as_tensor(obs, device=pol.device).float()
-            mean = pol.action_net(pol.mlp_extractor.forward_actor(
-                pol.extract_features(t, pol.pi_features_extractor)))
+            latent = pol.mlp_extractor.forward_actor(
+                pol.extract_features(t, pol.pi_features_extractor))
+            # a RestAnchoredPolicy's mean is its own (agents/anchor.py)
+            mean = pol.action_mean(latent) if hasattr(pol, "action_mean") else \
+                pol.action_net(latent)
         a = mean.cpu().numpy().reshape((-1, *pol.action_space.shape))
         return np.clip(a, pol.action_space.low, pol.action_space.high)
 

@@ -54,6 +54,7 @@ from stable_baselines3.common.callbacks import (
 )
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
+from agents.anchor import RestObservation, rest_for_save
 from agents.config import ConfigError, TrainConfig, load_config, parse_config
 from agents.evaluate import Job, eval_task, metrics, run_batch
 from agents.policies import LearnedPolicy
@@ -232,8 +233,10 @@ def model_is_finite(model: Any) -> bool:
 
 
 def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
-    """The model and its normaliser, each written atomically."""
-    atomic_save(model_path, model.save)
+    """The model (anchored at its normaliser's zero, ``agents.anchor.rest_for_save``) and its
+    normaliser, each written atomically."""
+    with rest_for_save(model):
+        atomic_save(model_path, model.save)
     norm = model.get_vec_normalize_env()
     if norm is not None and norm_path is not None:
         atomic_save(norm_path, lambda f: pickle.dump(norm, f))
@@ -497,7 +500,12 @@ def _new_model(cfg: TrainConfig, env: VecEnv, run: Path, seed: int, verbose: int
         import torch.nn as nn
 
         pk["activation_fn"] = getattr(nn, pk["activation_fn"].split(".")[1])
-    return PPO(cfg.policy, env, policy_kwargs=pk, seed=seed, device="cpu",
+    policy: Any = cfg.policy
+    if cfg.anchor_at_rest:
+        from agents.anchor import RestAnchoredPolicy
+
+        policy = RestAnchoredPolicy
+    return PPO(policy, env, policy_kwargs=pk, seed=seed, device="cpu",
                tensorboard_log=str(run / "tb"), verbose=verbose, **ppo_kwargs)
 
 
@@ -620,6 +628,7 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
         stop,
         NaNGuard(),
         TrackingMetrics(),
+        RestObservation(),
         HeldOutEval(cfg, run, calls(cfg.eval_freq), on_evaluation),
         CompleteCheckpoints(run, calls(cfg.checkpoint_freq)),
     ])
