@@ -47,9 +47,27 @@ class RestAnchoredPolicy(ActorCriticPolicy):
                              "(use_sde=False, squash_output=False)")
         n = int(np.prod(self.observation_space.shape))
         self.register_buffer("rest_obs", th.zeros(n, dtype=th.float32))
+        self._cached: tuple[tuple[int, ...], th.Tensor] | None = None
+
+    def _versions(self) -> tuple[int, ...]:
+        """Torch's in-place version counters of the rest point and the actor's weights: any
+        optimiser step or ``set_rest`` changes one of them."""
+        mods = (self.mlp_extractor.policy_net, self.action_net, self.pi_features_extractor)
+        return (id(self.rest_obs), self.rest_obs._version,
+                *(v for m in mods for q in m.parameters() for v in (id(q), q._version)))
 
     def rest_offset(self) -> th.Tensor:
-        """f(o_rest): what the mean subtracts, (1, n_actions)."""
+        """f(o_rest): what the mean subtracts, (1, n_actions). Without gradients (rollouts,
+        evaluation) it is computed once per set of weights and rest point: a rollout step
+        would otherwise pay a second forward pass."""
+        if th.is_grad_enabled():
+            return self._rest_forward()
+        key = self._versions()
+        if self._cached is None or self._cached[0] != key:
+            self._cached = (key, self._rest_forward())
+        return self._cached[1]
+
+    def _rest_forward(self) -> th.Tensor:
         rest = self.rest_obs.reshape(1, -1)
         return self.action_net(self.mlp_extractor.forward_actor(
             self.extract_features(rest, self.pi_features_extractor)))

@@ -15,13 +15,19 @@ window `mpa-gym simulate` uses) unless said otherwise:
   fallback took over (``None``: it never did, or the controller has no supervisor).
 
 With ``robustness=True`` the report also holds the robustness sweep of ``agents.robustness``
-(grids of real-rig effects, easy / medium / hard levels) with its heatmaps.
+(grids of real-rig effects, easy / medium / hard levels) with its heatmaps. On a machine with a
+second core the sweep runs in a second process while the report's batch runs in this one (both
+are single-threaded and independent; the numbers are the same either way).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import multiprocessing
+import os
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -235,6 +241,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     own = {spec: [load_policy(spec, {"scenario": sc})[0] for sc in loaded]
            for spec in policies if spec in BASELINES}
     stacked = {spec: stack(ps) for spec, ps in own.items()} if batched else {}
+    swept = sweep_in_background(policies, seed=seed) if robustness else None
     jobs, keys = [], []
     for k, sc in enumerate(loaded):
         for spec in policies:
@@ -267,12 +274,33 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     if robustness:
         from agents.robustness import robustness as sweep
 
-        report["robustness"] = sweep(policies, seed=seed)
+        report["robustness"] = swept() if swept else sweep(policies, seed=seed)
     from agents.robustness import no_harm
 
     report["no_harm"] = no_harm(results, report.get("robustness"),
                                 [_label(p) for p in policies if p not in BASELINES])
     return report
+
+
+def sweep_in_background(policies: list[str], **kwargs: Any
+                        ) -> Callable[[], dict[str, Any]] | None:
+    """``agents.robustness.robustness(policies, **kwargs)`` started in a second process (a fresh
+    interpreter: the policies load there from their specs), or None on a single core. The
+    returned function waits for the sweep, raises its error if it failed, and reaps the
+    worker."""
+    if len(os.sched_getaffinity(0)) < 2:
+        return None
+    from agents.robustness import robustness as sweep
+
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    future = pool.submit(sweep, policies, **kwargs)
+
+    def result() -> dict[str, Any]:
+        try:
+            return future.result()
+        finally:
+            pool.shutdown(wait=True)
+    return result
 
 
 def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:

@@ -70,6 +70,26 @@ def test_anchored_mean_is_zero_at_rest_and_only_there():
     assert np.max(np.abs(c)) > 1e-3
 
 
+def test_anchor_follows_every_change_of_the_weights_and_the_rest_point():
+    # rollouts reuse f(o_rest) while the weights stay; an optimiser step (in place, as Adam's)
+    # or a new normaliser must be seen at once, or the mean would not be zero at rest
+    import torch as th
+
+    policy = _policy(True, seed=1)
+    pol, start = policy.model.policy, np.array([True])
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    with th.no_grad():
+        for q in pol.mlp_extractor.policy_net.parameters():
+            q.add_(0.3 * th.randn_like(q))
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    policy.normalizer.obs_rms.mean = policy.normalizer.obs_rms.mean + 0.7
+    set_rest(policy.model)
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    off = _at_rest()
+    off[0] -= 0.2
+    assert np.max(np.abs(policy.predict(off, episode_start=start)[0])) > 1e-3
+
+
 def test_deployed_anchored_policy_equals_sb3_and_is_zero_at_rest():
     sb3 = _policy(True, seed=4)
     deployed = DeployedPolicy.from_learned(sb3, 9)

@@ -225,3 +225,24 @@ def test_tuned_pid_is_stable_on_a_slow_regulator_that_undid_the_old_gains():
     assert not now[0]["unstable"] and not now[1]["unstable"]
     assert now[0]["position_rmse_mm"] < 0.1 * ff[0]["position_rmse_mm"]
     assert before[1]["unstable"] and not ff[1]["unstable"]
+
+
+def test_sweep_in_a_second_process_gives_the_same_numbers_and_errors():
+    # evaluate runs the sweep in a spawned worker beside the report's batch: a fresh
+    # interpreter that loads the controllers from their specs. Its report must be the
+    # in-process one exactly (the episodes are deterministic), and its errors the same.
+    import os
+
+    from agents.evaluate import sweep_in_background
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("a single core: evaluate runs the sweep in its own process")
+    kwargs = dict(scenario=SHORT, grids=(Grid("tiny", "pressure_dead_time_s", (0.0, 0.02),
+                                              "extra_mass_kg", (0.0, 1.6)),),
+                  levels={}, kicks={})
+    assert sweep_in_background(["ff", "pid"], **kwargs)() == robustness(["ff", "pid"], **kwargs)
+    with pytest.raises(ValueError, match="no_such_controller") as there:
+        sweep_in_background(["no_such_controller"], **kwargs)()
+    with pytest.raises(ValueError) as here:
+        robustness(["no_such_controller"], **kwargs)
+    assert str(there.value) == str(here.value)
