@@ -27,7 +27,6 @@ import math
 import multiprocessing
 import os
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -242,39 +241,44 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
            for spec in policies if spec in BASELINES}
     stacked = {spec: stack(ps) for spec, ps in own.items()} if batched else {}
     swept = sweep_in_background(policies, seed=seed) if robustness else None
-    jobs, keys = [], []
-    for k, sc in enumerate(loaded):
-        for spec in policies:
-            if spec in learned:
-                policy, env_id, run_cfg = learned[spec]
-            else:
-                policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
-                                           "MPALegResidual-v0", None)
-            jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
-            keys.append((sc, _label(spec)))
-    if batched:
-        trs = run_batch(jobs, seed)
-    else:
-        trs = []
-        for j in jobs:
-            env = gym.make(j.env_id, scenario=j.scenario, task=j.task)
-            trs.append(run_episode(env, j.policy, seed))
-            env.close()
-    for (sc, label), tr in zip(keys, trs, strict=True):
-        impulses = [d for d in sc.disturbances if d.type == "impulse"]
-        end = impulses[0].t_s + impulses[0].duration_s if impulses else None
-        results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
-        traces.setdefault(sc.name, {})[label] = tr
-    report = {"results": results, "traces": traces, "seed": seed,
-              "learning": learning_speed(policies, results),
-              "controllers": {_label(p): tuned_on(p) for p in policies},
-              "supervisors": {_label(p): cfg.supervisor.describe()
-                              for p, (_, _, cfg) in learned.items() if cfg.supervisor},
-              "groups": seed_groups(groups, results)}
+    try:
+        jobs, keys = [], []
+        for k, sc in enumerate(loaded):
+            for spec in policies:
+                if spec in learned:
+                    policy, env_id, run_cfg = learned[spec]
+                else:
+                    policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
+                                               "MPALegResidual-v0", None)
+                jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
+                keys.append((sc, _label(spec)))
+        if batched:
+            trs = run_batch(jobs, seed)
+        else:
+            trs = []
+            for j in jobs:
+                env = gym.make(j.env_id, scenario=j.scenario, task=j.task)
+                trs.append(run_episode(env, j.policy, seed))
+                env.close()
+        for (sc, label), tr in zip(keys, trs, strict=True):
+            impulses = [d for d in sc.disturbances if d.type == "impulse"]
+            end = impulses[0].t_s + impulses[0].duration_s if impulses else None
+            results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
+            traces.setdefault(sc.name, {})[label] = tr
+        report = {"results": results, "traces": traces, "seed": seed,
+                  "learning": learning_speed(policies, results),
+                  "controllers": {_label(p): tuned_on(p) for p in policies},
+                  "supervisors": {_label(p): cfg.supervisor.describe()
+                                  for p, (_, _, cfg) in learned.items() if cfg.supervisor},
+                  "groups": seed_groups(groups, results)}
+    except BaseException:  # an error or Ctrl-C here: the sweep's worker is not waited for
+        if swept:
+            swept.cancel()
+        raise
     if robustness:
         from agents.robustness import robustness as sweep
 
-        report["robustness"] = swept() if swept else sweep(policies, seed=seed)
+        report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
     from agents.robustness import no_harm
 
     report["no_harm"] = no_harm(results, report.get("robustness"),
@@ -282,25 +286,35 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     return report
 
 
-def sweep_in_background(policies: list[str], **kwargs: Any
-                        ) -> Callable[[], dict[str, Any]] | None:
+class Background:
+    """A function call running in a spawned worker process (``multiprocessing.Pool``)."""
+
+    def __init__(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        self._pool = multiprocessing.get_context("spawn").Pool(1)
+        self._call = self._pool.apply_async(fn, args, kwargs)
+
+    def result(self) -> Any:
+        """Wait for the call, raise its error if it failed, and reap the worker."""
+        try:
+            return self._call.get()
+        finally:
+            self._pool.close()
+            self._pool.join()
+
+    def cancel(self) -> None:
+        """Stop the worker now (the caller failed or was interrupted: nobody waits for it)."""
+        self._pool.terminate()
+        self._pool.join()
+
+
+def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None:
     """``agents.robustness.robustness(policies, **kwargs)`` started in a second process (a fresh
-    interpreter: the policies load there from their specs), or None on a single core. The
-    returned function waits for the sweep, raises its error if it failed, and reaps the
-    worker."""
+    interpreter: the policies load there from their specs), or None on a single core."""
     if len(os.sched_getaffinity(0)) < 2:
         return None
     from agents.robustness import robustness as sweep
 
-    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-    future = pool.submit(sweep, policies, **kwargs)
-
-    def result() -> dict[str, Any]:
-        try:
-            return future.result()
-        finally:
-            pool.shutdown(wait=True)
-    return result
+    return Background(sweep, policies, **kwargs)
 
 
 def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:

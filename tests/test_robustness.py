@@ -240,9 +240,10 @@ def test_sweep_in_a_second_process_gives_the_same_numbers_and_errors():
     kwargs = dict(scenario=SHORT, grids=(Grid("tiny", "pressure_dead_time_s", (0.0, 0.02),
                                               "extra_mass_kg", (0.0, 1.6)),),
                   levels={}, kicks={})
-    assert sweep_in_background(["ff", "pid"], **kwargs)() == robustness(["ff", "pid"], **kwargs)
+    there = sweep_in_background(["ff", "pid"], **kwargs).result()
+    assert there == robustness(["ff", "pid"], **kwargs)
     with pytest.raises(ValueError, match="no_such_controller") as there:
-        sweep_in_background(["no_such_controller"], **kwargs)()
+        sweep_in_background(["no_such_controller"], **kwargs).result()
     with pytest.raises(ValueError) as here:
         robustness(["no_such_controller"], **kwargs)
     assert str(there.value) == str(here.value)
