@@ -229,8 +229,6 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
 
     All episodes run as one batch (:func:`run_batch`); ``batched=False`` runs them one after
     another (:func:`run_episode`), with the same numbers."""
-    results: dict[str, dict[str, Any]] = {}
-    traces: dict[str, dict[str, Trace]] = {}
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
@@ -242,35 +240,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     stacked = {spec: stack(ps) for spec, ps in own.items()} if batched else {}
     swept = sweep_in_background(policies, seed=seed) if robustness else None
     try:
-        jobs, keys = [], []
-        for k, sc in enumerate(loaded):
-            for spec in policies:
-                if spec in learned:
-                    policy, env_id, run_cfg = learned[spec]
-                else:
-                    policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
-                                               "MPALegResidual-v0", None)
-                jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
-                keys.append((sc, _label(spec)))
-        if batched:
-            trs = run_batch(jobs, seed)
-        else:
-            trs = []
-            for j in jobs:
-                env = gym.make(j.env_id, scenario=j.scenario, task=j.task)
-                trs.append(run_episode(env, j.policy, seed))
-                env.close()
-        for (sc, label), tr in zip(keys, trs, strict=True):
-            impulses = [d for d in sc.disturbances if d.type == "impulse"]
-            end = impulses[0].t_s + impulses[0].duration_s if impulses else None
-            results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
-            traces.setdefault(sc.name, {})[label] = tr
-        report = {"results": results, "traces": traces, "seed": seed,
-                  "learning": learning_speed(policies, results),
-                  "controllers": {_label(p): tuned_on(p) for p in policies},
-                  "supervisors": {_label(p): cfg.supervisor.describe()
-                                  for p, (_, _, cfg) in learned.items() if cfg.supervisor},
-                  "groups": seed_groups(groups, results)}
+        report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
+                                  batched)
     except BaseException:  # an error or Ctrl-C here: the sweep's worker is not waited for
         if swept:
             swept.cancel()
@@ -281,9 +252,46 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
     from agents.robustness import no_harm
 
-    report["no_harm"] = no_harm(results, report.get("robustness"),
+    report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [_label(p) for p in policies if p not in BASELINES])
     return report
+
+
+def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, Any],
+                     own: dict[str, list[Policy]], stacked: dict[str, Policy],
+                     groups: list[list[str]], seed: int, batched: bool) -> dict[str, Any]:
+    """``evaluate``'s report without the sweep: every controller's episode on every scenario."""
+    results: dict[str, dict[str, Any]] = {}
+    traces: dict[str, dict[str, Trace]] = {}
+    jobs, keys = [], []
+    for k, sc in enumerate(loaded):
+        for spec in policies:
+            if spec in learned:
+                policy, env_id, run_cfg = learned[spec]
+            else:
+                policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
+                                           "MPALegResidual-v0", None)
+            jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
+            keys.append((sc, _label(spec)))
+    if batched:
+        trs = run_batch(jobs, seed)
+    else:
+        trs = []
+        for j in jobs:
+            env = gym.make(j.env_id, scenario=j.scenario, task=j.task)
+            trs.append(run_episode(env, j.policy, seed))
+            env.close()
+    for (sc, label), tr in zip(keys, trs, strict=True):
+        impulses = [d for d in sc.disturbances if d.type == "impulse"]
+        end = impulses[0].t_s + impulses[0].duration_s if impulses else None
+        results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
+        traces.setdefault(sc.name, {})[label] = tr
+    return {"results": results, "traces": traces, "seed": seed,
+            "learning": learning_speed(policies, results),
+            "controllers": {_label(p): tuned_on(p) for p in policies},
+            "supervisors": {_label(p): cfg.supervisor.describe()
+                            for p, (_, _, cfg) in learned.items() if cfg.supervisor},
+            "groups": seed_groups(groups, results)}
 
 
 class Background:
