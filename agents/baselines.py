@@ -134,6 +134,17 @@ class _PlanPolicy:
         st[:, 1] = np.where(fresh, de, st[:, 1] + alpha * (de - st[:, 1]))
         return kp * e + ki * st[:, 0] + kd * st[:, 1], st
 
+    def _hold(self, observation: np.ndarray, state: Any, rows: np.ndarray, output: np.ndarray,
+              ki: float) -> np.ndarray:
+        """``state`` (zeros if None) with ``rows`` set to continue ``output`` (n,): ∫e such that
+        Ki ∫e = output, the derivative filter at the measured V̂ − V, no saturation."""
+        obs = np.asarray(observation, dtype=np.float64).reshape(len(rows), -1)
+        n = obs.shape[0]
+        st = np.zeros((n, 3)) if state is None else np.array(state, dtype=float).reshape(n, 3)
+        st[rows] = np.stack([output / ki, obs[:, OVR] - obs[:, OV], np.zeros(n)],
+                            axis=-1)[rows]
+        return st
+
     @staticmethod
     def _saturated(st: np.ndarray, u: np.ndarray, clipped: np.ndarray) -> None:
         """Record in the state where the output ``u`` was clipped, in u's direction."""
@@ -195,6 +206,16 @@ class PIDResidual(_PlanPolicy):
         self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
         return (a[0] if single else a), st
 
+    def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
+                  rows: np.ndarray) -> np.ndarray:
+        """The state from which this controller continues the residual ``held`` (n, 2) on
+        ``rows`` (a bumpless transfer, ``agents.supervisor``): the integrator gives the
+        antagonistic part u = (a_e − a_f) / 2 of the held command, the derivative filter
+        starts at the measured error rate; other rows keep ``state``. The common part of the
+        command (a stiffness change) has no place in this controller and is dropped."""
+        return self._hold(observation, state, rows, 0.5 * (held[:, 0] - held[:, 1])
+                          * self.cfg.residual_scale_bar, self.ki_bar_per_m_s)
+
 
 @dataclass
 class StiffnessFeedback(_PlanPolicy):
@@ -217,11 +238,8 @@ class StiffnessFeedback(_PlanPolicy):
         correction, st = self._pid(obs, state, episode_start, self.kp_N_per_m,
                                    self.ki_N_per_m_s, self.kd_N_s_per_m, self.tf_s)
         x, v = obs[:, OX], obs[:, OV]
-        n = obs.shape[0]
-        omega = self._per_row(n, lambda p: p.design.reference.omega)
-        a_ref = -omega**2 * (obs[:, OXR] - self._per_row(n, lambda p: p.design.reference.x0))
         p = self.params
-        f_star = p.leg.m * (a_ref + p.leg.g) + correction
+        f_star = self._force_target(obs) + correction
         k_star = obs[:, OK] * OBS_KREF_SCALE
         with np.errstate(invalid="ignore"):
             c = affine_in_pressures(x, v, p)
@@ -237,6 +255,27 @@ class StiffnessFeedback(_PlanPolicy):
         a[~np.isfinite(a)] = 0.0  # no model answer (state outside its domain): feedforward only
         self._saturated(st, correction, clipped)
         return (a[0] if single else a), st
+
+    def _force_target(self, obs: np.ndarray) -> np.ndarray:
+        """[N] m (dV̂/dt + g) on the nominal m: the force law without its correction."""
+        n = obs.shape[0]
+        omega = self._per_row(n, lambda p: p.design.reference.omega)
+        a_ref = -omega**2 * (obs[:, OXR] - self._per_row(n, lambda p: p.design.reference.x0))
+        return self.params.leg.m * (a_ref + self.params.leg.g)
+
+    def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
+                  rows: np.ndarray) -> np.ndarray:
+        """The state from which this controller continues the residual ``held`` (n, 2) on
+        ``rows`` (a bumpless transfer, ``agents.supervisor``): the integrator gives the force
+        correction that the held pressures (feedforward + residual) make, on the nominal model
+        at the measured state, beyond m (dV̂/dt + g); other rows keep ``state``."""
+        obs = np.asarray(observation, dtype=np.float64).reshape(len(rows), -1)
+        pressures = self._feedforward(obs) + held * self.cfg.residual_scale_bar * BAR
+        with np.errstate(invalid="ignore"):
+            c = affine_in_pressures(obs[:, OX], obs[:, OV], self.params)
+            force = c.F0 + np.einsum("...j,...j->...", c.J[..., 0, :], pressures)
+        correction = np.nan_to_num(force - self._force_target(obs))  # outside the model: 0
+        return self._hold(obs, state, rows, correction, self.ki_N_per_m_s)
 
 
 BASELINES = {"ff": "ZeroResidual", "pid": "PIDResidual", "mbfb": "StiffnessFeedback"}

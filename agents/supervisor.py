@@ -20,7 +20,15 @@ tracking error e = X̂ − X for the two ways a destabilised loop shows itself:
 
 Once either level is crossed, the fallback drives the rest of the episode (the latch never
 hands back: a residual that destabilised this plant once does it again). The fallback is not
-run until then, and starts from zero state when it takes over.
+run until then. It takes over bumplessly (Åström & Hägglund, "Advanced PID control", 2006,
+§ 3.5): a fallback with a ``take_over(observation, held, state, rows)`` method (both baselines)
+starts its integrator from the command the policy held, so the load the policy was carrying
+stays carried; one without it starts from zero state. The command held is the mean of the
+policy's actions over the last reference period (its DC part: a periodic loop's corrections at
+the reference frequency and its harmonics cancel in it, and so, to first order, does the
+oscillation that tripped the monitor), not the last action, which would carry the oscillation's
+instantaneous value into the integrator. Without it, pid restarted from zero on a leg carrying
+1.6 kg took 5.5 s to recover (|e| < 1 mm) after a kick, against 2.2 s for pid alone.
 
 Calibration of the defaults (``mpa-gym evaluate`` of the default config's policy and of the
 baselines, unsupervised): healthy loops stay below 2.2 mm of change per period (a 30 N × 50 ms
@@ -103,9 +111,10 @@ class Supervised:
     """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
     (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
 
-    State: (policy's, fallback's, monitor) with the monitor an (n, 4 + N) array per row:
-    running mean of e², running mean of (e_t − e_{t−T})², the latch, the steps taken, and the
-    last N = T / dt errors (a ring buffer)."""
+    State: (policy's, fallback's, monitor) with the monitor an (n, 4 + 3N) array per row:
+    running mean of e², running mean of (e_t − e_{t−T})², the latch, the steps taken, and
+    ring buffers of the last N = T / dt errors and of the policy's last N actions (extensor's,
+    then flexor's)."""
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec()) -> None:
@@ -122,9 +131,10 @@ class Supervised:
         rows = obs.reshape(1, -1) if single else obs
         n, N = rows.shape[0], self.n_period
         inner, fb, mon = (None, None, None) if state is None else state
-        mon = np.zeros((n, 4 + N)) if mon is None else np.array(mon, dtype=float)
+        mon = np.zeros((n, 4 + 3 * N)) if mon is None else np.array(mon, dtype=float)
         if episode_start is not None:
             mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        was_driving = mon[:, 2] > 0.0
         e = rows[:, OXR] - rows[:, OX]
         k = mon[:, 3].astype(np.int64)
         slot = 4 + k % N
@@ -133,19 +143,35 @@ class Supervised:
         armed = k >= ARM_PERIODS * N
         mon[:, 1] += np.where(armed, self.a_ap * ((e - past) ** 2 - mon[:, 1]), 0.0)
         mon[np.arange(n), slot] = e
-        mon[:, 3] += 1
         trip = ((np.sqrt(mon[:, 0]) > self.spec.error_mm * 1e-3)
                 | (np.sqrt(mon[:, 1]) > self.spec.aperiodic_mm * 1e-3))
         mon[:, 2] = np.maximum(mon[:, 2], trip)
         driving = mon[:, 2] > 0.0
         a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
-        if not driving.any():  # the fallback runs only once it drives, from a cold start
+        a2 = np.atleast_2d(a)
+        mon[np.arange(n), slot + N] = a2[:, 0]
+        mon[np.arange(n), slot + 2 * N] = a2[:, 1]
+        mon[:, 3] += 1
+        if not driving.any():  # the fallback runs only once it drives
             return a, (inner, None, mon)
-        cold = ~driving if fb is not None else np.ones(n, dtype=bool)
-        b, fb = self.fallback.predict(observation, fb, cold[0] if single else cold,
-                                      deterministic)
-        out = np.where(driving[:, None], np.atleast_2d(b), np.atleast_2d(a)).astype(np.float32)
+        new = driving & ~was_driving if fb is not None else driving
+        take_over = getattr(self.fallback, "take_over", None)
+        if take_over is None:  # no bumpless transfer: from zero state
+            b, fb = self.fallback.predict(observation, fb, new[0] if single else new,
+                                          deterministic)
+        else:
+            fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
+            b, fb = self.fallback.predict(observation, fb, None, deterministic)
+        out = np.where(driving[:, None], np.atleast_2d(b), a2).astype(np.float32)
         return (out[0] if single else out), (inner, fb, mon)
+
+    def held(self, mon: np.ndarray) -> np.ndarray:
+        """(n, 2) per row, the mean of the policy's actions over the last reference period (or
+        over the steps so far, within the first): the command the fallback takes over."""
+        N = self.n_period
+        filled = np.minimum(mon[:, 3], N)[:, None]
+        return np.stack([mon[:, 4 + N:4 + 2 * N].sum(axis=1),
+                         mon[:, 4 + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
 
     @staticmethod
     def driving(state: Any) -> np.ndarray | None:
