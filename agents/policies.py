@@ -136,7 +136,6 @@ def _load_learned(run: str, which: str, stamp: tuple[Any, ...]) -> tuple[Any, An
 
 def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any]:
     import torch
-    from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import VecNormalize
 
     from agents.config import load_config
@@ -150,7 +149,7 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path} not found: is {run} a finished run folder?")
     try:
-        model = PPO.load(model_path, device="cpu")
+        model = SavedModel.load(model_path)
     except Exception as e:  # a truncated zip, a foreign file: zipfile, pickle, torch errors
         raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
     norm = None
@@ -173,6 +172,52 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         return DeployedPolicy.from_learned(
             policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
     return policy, cfg
+
+
+class SavedModel:
+    """The policy of a saved SB3 model (``model.zip``) for inference, without the algorithm.
+
+    ``PPO.load`` rebuilds the whole algorithm: a rollout buffer, and an Adam optimiser whose
+    construction imports ``torch._dynamo`` (about a second per process). Evaluation and
+    rollouts need only the network, so this builds the saved policy class with the saved
+    spaces and keyword arguments, no optimiser, and loads its weights, through SB3's own
+    ``load_from_zip_file``. ``predict`` is SB3's ``policy.predict``, which ``PPO.predict``
+    calls; ``num_timesteps`` is the training steps the model was saved at."""
+
+    def __init__(self, policy: Any, num_timesteps: int) -> None:
+        self.policy, self.num_timesteps = policy, num_timesteps
+        self.observation_space = policy.observation_space
+        self.action_space = policy.action_space
+
+    @classmethod
+    def load(cls, path: str | Path) -> SavedModel:
+        from stable_baselines3.common.save_util import load_from_zip_file
+
+        data, params, _ = load_from_zip_file(path, device="cpu")
+        if data is None or "policy" not in params:
+            raise ValueError("not a saved SB3 model (no data or no policy weights)")
+        kwargs = {**data.get("policy_kwargs", {}), "optimizer_class": _NoOptimizer}
+        policy = data["policy_class"](data["observation_space"], data["action_space"],
+                                      lambda _: 0.0, **kwargs)
+        policy.load_state_dict(params["policy"])
+        policy.set_training_mode(False)
+        return cls(policy, int(data.get("num_timesteps", 0)))
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = False
+                ) -> tuple[np.ndarray, Any]:
+        return self.policy.predict(observation, state, episode_start, deterministic)
+
+    def get_vec_normalize_env(self) -> None:
+        """No env: the normaliser is the ``LearnedPolicy``'s (``agents.anchor.set_rest``)."""
+        return None
+
+
+class _NoOptimizer:
+    """The optimiser of a policy loaded for inference: none (it is never stepped)."""
+
+    def __init__(self, params: Any, lr: float = 0.0, **kwargs: Any) -> None:
+        pass
 
 
 class _DummyVec:

@@ -136,3 +136,29 @@ def test_learned_policy_action_is_sb3_predicts_bit_for_bit(tiny_run):
     a = policy._mean_action(big)
     assert np.array_equal(a, policy.model.predict(big, deterministic=True)[0])
     assert np.all(np.abs(a) <= 1.0)
+
+
+def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
+    # evaluation loads the network alone (SavedModel, no optimiser, no rollout buffer): its
+    # weights, rest point and actions must be those of SB3's PPO.load of the same file, bit for
+    # bit, deterministic and sampled (same torch seed)
+    import torch
+    from stable_baselines3 import PPO
+
+    from agents.policies import SavedModel
+
+    ours = SavedModel.load(tiny_run / "model.zip")
+    theirs = PPO.load(tiny_run / "model.zip", device="cpu")
+    assert type(ours.policy) is type(theirs.policy)
+    assert ours.num_timesteps == theirs.num_timesteps > 0
+    mine, ref = ours.policy.state_dict(), theirs.policy.state_dict()
+    assert mine.keys() == ref.keys() and "rest_obs" in mine
+    assert all(torch.equal(mine[k], ref[k]) for k in ref)
+    obs = np.random.default_rng(5).normal(0.0, 3.0, (64, ours.observation_space.shape[0]))
+    assert np.array_equal(ours.predict(obs, deterministic=True)[0],
+                          theirs.predict(obs, deterministic=True)[0])
+    torch.manual_seed(0)
+    sampled = ours.predict(obs)[0]
+    torch.manual_seed(0)
+    assert np.array_equal(sampled, theirs.predict(obs)[0])
+    assert not np.array_equal(sampled, ours.predict(obs, deterministic=True)[0])
