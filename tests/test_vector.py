@@ -78,6 +78,10 @@ def test_sb3_adapter_conventions():
         vec.step_async(np.zeros((3, 2)))
         obs, rew, dones, infos = vec.step_wait()
         assert rew.dtype == np.float32 and len(infos) == 3
+        # one dict per env, each with its own row (a finished env's: its last step's, not the
+        # reset's, which would be t = 0)
+        assert [info["t_s"] for info in infos] == pytest.approx([0.01 * (step + 1)] * 3)
+        assert all(info["pressure_bar"].shape == (2,) for info in infos)
         if step == 4:  # 5 steps of 10 ms: every env truncates and resets in this step
             assert dones.all()
             for i, info in enumerate(infos):
