@@ -59,12 +59,7 @@ class SB3VecEnv(VecEnv):
         if final is not None:
             info = {k: np.where(info["_final_info"].reshape(-1, *[1] * (np.ndim(info[k]) - 1)),
                                 final[k], info[k]) for k in keys}
-        if not keys:
-            return [{} for _ in range(self.num_envs)]
-        # one row of every array per env (zip iterates them as indexing would: numpy scalars,
-        # row views), a dict built per env rather than an index per key and env
-        return [dict(zip(keys, row, strict=True)) for row in zip(*(info[k] for k in keys),
-                                                                  strict=True)]
+        return [{k: info[k][i] for k in keys} for i in range(self.num_envs)]
 
     def close(self) -> None:
         self.venv.close()
