@@ -18,17 +18,32 @@ tracking error e = X̂ − X for the two ways a destabilised loop shows itself:
   "unstable" criterion (``agents.robustness``) made causal. The first two periods are left out
   because the difference would compare the settled loop with its start-up transient.
 
-Once either level is crossed, the fallback drives the rest of the episode (the latch never
-hands back: a residual that destabilised this plant once does it again). The fallback is not
-run until then. It takes over bumplessly (Åström & Hägglund, "Advanced PID control", 2006,
-§ 3.5): a fallback with a ``take_over(observation, held, state, rows)`` method (both baselines)
-starts its integrator from the command the policy held, so the load the policy was carrying
-stays carried; one without it starts from zero state. The command held is the mean of the
-policy's actions over the last reference period (its DC part: a periodic loop's corrections at
-the reference frequency and its harmonics cancel in it, and so, to first order, does the
-oscillation that tripped the monitor), not the last action, which would carry the oscillation's
-instantaneous value into the integrator. Without it, pid restarted from zero on a leg carrying
-1.6 kg took 5.5 s to recover (|e| < 1 mm) after a kick, against 2.2 s for pid alone.
+Once either level is crossed, the fallback drives the rest of the episode (the latch never hands
+back: a residual that destabilised this plant once does it again). A feedback fallback can fail
+too: beyond ~30 ms of dead time the tuned pid limit-cycles on its own. With ``last_resort: ff``
+the error monitor restarts from zero when the fallback takes over and, if the fallback's loop
+diverges as well after one period to settle (pid's own limit cycle at 40 ms of dead time on the
+unloaded leg reaches 22 mm RMS), the feedforward alone (a zero residual: Eq. 16 open loop, which
+has no feedback for a delay to destabilise) drives the rest of the episode. The fallback's loop
+is judged on divergence only: after a hand-over it settles from the policy's oscillation, and
+where it is near its own stability margin (30 ms on the unloaded leg, 40 ms with 0.5 kg) that
+transient crossed the 2 mm limit-cycle level of the default config and handed a loop pid holds
+(0.47 and 0.73 mm) to the feedforward (1.8 and 10.6 mm); so, with no grace period, did the
+divergence level. The period of grace was set on the default config's policy in the sweep's
+40 ms row (beyond its training range): with half a period the unloaded leg's loop ended 4e-6 mm
+above the feedforward alone (the no-harm audit's bound is strict); with two periods it left its
+bounds under pid before the feedforward took over.
+
+The fallback is not run until the first trip. It takes over bumplessly (Åström & Hägglund,
+"Advanced PID control", 2006, § 3.5): a fallback with a ``take_over(observation, held, state,
+rows)`` method (both baselines) starts its integrator from the command the policy held, so the
+load the policy was carrying stays carried; one without it starts from zero state. The command
+held is the mean of the policy's actions over the last reference period (its DC part: a periodic
+loop's corrections at the reference frequency and its harmonics cancel in it, and so, to first
+order, does the oscillation that tripped the monitor), not the last action, which would carry
+the oscillation's instantaneous value into the integrator. Without it, pid restarted from zero
+on a leg carrying 1.6 kg took 5.5 s to recover (|e| < 1 mm) after a kick, against 2.2 s for pid
+alone.
 
 Calibration of the defaults (``mpa-gym evaluate`` of the default config's policy and of the
 baselines, unsupervised): healthy loops stay below 2.2 mm of change per period (a 30 N × 50 ms
@@ -66,7 +81,13 @@ from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
 FALLBACKS = ("pid", "mbfb")
+LAST_RESORTS = ("ff",)
 ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
+GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
+# the monitor's columns per row (``Supervised``): the two running means, the stage (0 policy,
+# 1 fallback, 2 last resort), the steps taken, the step the stage began; then the ring buffers
+M_ERR, M_AP, M_STAGE, M_STEP, M_SINCE = range(5)
+M_RING = 5
 
 
 @dataclass(frozen=True)
@@ -78,10 +99,14 @@ class SupervisorSpec:
     error_window_s: float = 0.5  # [s] time constant of that running mean
     aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
     aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
+    last_resort: str | None = None  # "ff": the feedforward alone once the fallback trips too
 
     def __post_init__(self) -> None:
         if self.fallback not in FALLBACKS:
             raise ValueError(f"supervisor.fallback={self.fallback!r}: allowed {list(FALLBACKS)}")
+        if self.last_resort is not None and self.last_resort not in LAST_RESORTS:
+            raise ValueError(f"supervisor.last_resort={self.last_resort!r}: allowed null or "
+                             f"{list(LAST_RESORTS)}")
         for key, hi, unit in (("error_mm", 100.0, "mm"), ("error_window_s", 30.0, "s"),
                               ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
             check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
@@ -101,20 +126,27 @@ class SupervisorSpec:
         return cls(**value)
 
     def describe(self) -> str:
-        return (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
-                f"exceeds {self.error_mm:g} mm or, from the third period on, the RMS of its "
-                f"change over one period (over {self.aperiodic_window_s:g} s) exceeds "
-                f"{self.aperiodic_mm:g} mm")
+        out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
+               f"exceeds {self.error_mm:g} mm or, from the third period on, the RMS of its "
+               f"change over one period (over {self.aperiodic_window_s:g} s) exceeds "
+               f"{self.aperiodic_mm:g} mm")
+        if self.last_resort:
+            out += (f"; {self.last_resort} alone once {self.fallback}'s loop, given one period "
+                    f"to settle, passes {self.error_mm:g} mm too")
+        return out
 
 
 class Supervised:
     """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
     (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
+    With ``spec.last_resort``, the monitor restarts when the fallback takes over and, if the
+    fallback's loop crosses a level too, the feedforward alone (a zero residual) drives the
+    rest of the episode.
 
-    State: (policy's, fallback's, monitor) with the monitor an (n, 4 + 3N) array per row:
-    running mean of e², running mean of (e_t − e_{t−T})², the latch, the steps taken, and
-    ring buffers of the last N = T / dt errors and of the policy's last N actions (extensor's,
-    then flexor's)."""
+    State: (policy's, fallback's, monitor) with the monitor an (n, 5 + 3N) array per row: the
+    ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the stage, the steps
+    taken, the step the stage began), then ring buffers of the last N = T / dt errors and of the
+    policy's last N actions (extensor's, then flexor's)."""
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec()) -> None:
@@ -131,30 +163,39 @@ class Supervised:
         rows = obs.reshape(1, -1) if single else obs
         n, N = rows.shape[0], self.n_period
         inner, fb, mon = (None, None, None) if state is None else state
-        mon = np.zeros((n, 4 + 3 * N)) if mon is None else np.array(mon, dtype=float)
+        mon = np.zeros((n, M_RING + 3 * N)) if mon is None else np.array(mon, dtype=float)
         if episode_start is not None:
             mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
-        was_driving = mon[:, 2] > 0.0
+        stage_before = mon[:, M_STAGE].copy()
         e = rows[:, OXR] - rows[:, OX]
-        k = mon[:, 3].astype(np.int64)
-        slot = 4 + k % N
+        k = mon[:, M_STEP].astype(np.int64)
+        slot = M_RING + k % N
         past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
-        mon[:, 0] += self.a_err * (e**2 - mon[:, 0])
-        armed = k >= ARM_PERIODS * N
-        mon[:, 1] += np.where(armed, self.a_ap * ((e - past) ** 2 - mon[:, 1]), 0.0)
+        mon[:, M_ERR] += self.a_err * (e**2 - mon[:, M_ERR])
+        armed = k - mon[:, M_SINCE] >= ARM_PERIODS * N  # two periods into the stage
+        mon[:, M_AP] += np.where(armed, self.a_ap * ((e - past) ** 2 - mon[:, M_AP]), 0.0)
         mon[np.arange(n), slot] = e
-        trip = ((np.sqrt(mon[:, 0]) > self.spec.error_mm * 1e-3)
-                | (np.sqrt(mon[:, 1]) > self.spec.aperiodic_mm * 1e-3))
-        mon[:, 2] = np.maximum(mon[:, 2], trip)
-        driving = mon[:, 2] > 0.0
+        # the fallback's loop is judged on divergence alone: after a hand-over it settles from
+        # the policy's oscillation, slowly where it is near its own margin (module docstring)
+        grace = (stage_before > 0.0) & (k - mon[:, M_SINCE] < GRACE_PERIODS * N)
+        trip = (((np.sqrt(mon[:, M_ERR]) > self.spec.error_mm * 1e-3) & ~grace)
+                | ((np.sqrt(mon[:, M_AP]) > self.spec.aperiodic_mm * 1e-3)
+                   & (stage_before == 0.0)))
+        last = 2.0 if self.spec.last_resort else 1.0
+        mon[:, M_STAGE] = np.where(trip, np.minimum(stage_before + 1.0, last), stage_before)
+        if self.spec.last_resort:  # each stage is judged on its own loop: the monitor restarts
+            moved = (mon[:, M_STAGE] > stage_before) & (mon[:, M_STAGE] < last)
+            mon[moved, M_ERR] = mon[moved, M_AP] = 0.0
+            mon[moved, M_SINCE] = k[moved] + 1
+        driving = mon[:, M_STAGE] > 0.0
         a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
         a2 = np.atleast_2d(a)
         mon[np.arange(n), slot + N] = a2[:, 0]
         mon[np.arange(n), slot + 2 * N] = a2[:, 1]
-        mon[:, 3] += 1
+        mon[:, M_STEP] += 1
         if not driving.any():  # the fallback runs only once it drives
             return a, (inner, None, mon)
-        new = driving & ~was_driving if fb is not None else driving
+        new = driving & ~(stage_before > 0.0) if fb is not None else driving
         take_over = getattr(self.fallback, "take_over", None)
         if take_over is None:  # no bumpless transfer: from zero state
             b, fb = self.fallback.predict(observation, fb, new[0] if single else new,
@@ -162,21 +203,30 @@ class Supervised:
         else:
             fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
             b, fb = self.fallback.predict(observation, fb, None, deterministic)
-        out = np.where(driving[:, None], np.atleast_2d(b), a2).astype(np.float32)
+        out = np.where(driving[:, None], np.atleast_2d(b), a2)
+        out[mon[:, M_STAGE] >= 2.0] = 0.0  # the last resort: the feedforward alone
+        out = out.astype(np.float32)
         return (out[0] if single else out), (inner, fb, mon)
 
     def held(self, mon: np.ndarray) -> np.ndarray:
         """(n, 2) per row, the mean of the policy's actions over the last reference period (or
         over the steps so far, within the first): the command the fallback takes over."""
-        N = self.n_period
-        filled = np.minimum(mon[:, 3], N)[:, None]
-        return np.stack([mon[:, 4 + N:4 + 2 * N].sum(axis=1),
-                         mon[:, 4 + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
+        N, r = self.n_period, M_RING
+        filled = np.minimum(mon[:, M_STEP], N)[:, None]
+        return np.stack([mon[:, r + N:r + 2 * N].sum(axis=1),
+                         mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
+
+    @staticmethod
+    def stage(state: Any) -> np.ndarray | None:
+        """Per row, who drives: 0 the policy, 1 the fallback, 2 the last resort (None before
+        the first step)."""
+        return None if state is None else np.asarray(state[2])[:, M_STAGE]
 
     @staticmethod
     def driving(state: Any) -> np.ndarray | None:
-        """Per row, whether the fallback drives (None before the first step)."""
-        return None if state is None else np.asarray(state[2])[:, 2] > 0.0
+        """Per row, whether the fallback (or the last resort) drives (None before the first
+        step)."""
+        return None if state is None else np.asarray(state[2])[:, M_STAGE] > 0.0
 
 
 def took_over(policy: Policy, state: Any) -> np.ndarray | None:

@@ -17,7 +17,7 @@ from agents.config import ConfigError, parse_config
 from agents.evaluate import evaluate
 from agents.robustness import _scenario, cell_metrics, run_batches
 from agents.rollout import read_log, rollout
-from agents.supervisor import ARM_PERIODS, Supervised, SupervisorSpec, took_over
+from agents.supervisor import ARM_PERIODS, GRACE_PERIODS, Supervised, SupervisorSpec, took_over
 from agents.train import train
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.design.feedforward import affine_in_pressures
@@ -73,6 +73,51 @@ def test_monitor_trips_on_an_aperiodic_oscillation_and_not_on_a_periodic_error()
     assert ARM_PERIODS * T + 0.75 < first[1] < ARM_PERIODS * T + 1.0
     assert 1.0 + 0.38 < first[2] < 1.0 + 0.45
     assert np.all(drove[round(first[1] / DT):, 1])  # the latch never hands back
+
+
+def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
+    # A 20 mm step at 1 s that the fallback does not remove (a fallback that cannot hold this
+    # plant): the error monitor trips at 1.41 s (previous test) and hands over to the
+    # fallback; with a last resort the error monitor restarts from zero there and judges the
+    # fallback's loop after GRACE_PERIODS periods (its running mean has long passed the level
+    # by then), and the feedforward alone (a zero residual) drives from then on. Without one
+    # the fallback keeps driving. Row 1, a healthy periodic error, is never touched.
+    t = DT * np.arange(round(3 * T / DT))
+    errors = np.stack([np.where(t >= 1.0, 0.02, 0.0), 0.010 * np.sin(2 * np.pi * t / T)],
+                      axis=1)
+    chained = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T,
+                                SupervisorSpec(last_resort="ff")), errors)
+    plain = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T), errors)
+    to_fallback = np.flatnonzero(chained[:, 0] == 1.0)[0] * DT
+    to_ff = np.flatnonzero(chained[:, 0] == 0.0)[0] * DT
+    assert 1.38 < to_fallback < 1.45
+    assert GRACE_PERIODS * T <= to_ff - to_fallback < GRACE_PERIODS * T + 2 * DT
+    assert np.all(chained[round(to_ff / DT):, 0] == 0.0)  # and stays there
+    assert np.array_equal(plain[:round(to_ff / DT), 0], chained[:round(to_ff / DT), 0])
+    assert np.all(plain[round(to_fallback / DT):, 0] == 1.0)
+    assert np.all(chained[:, 1] == 0.5) and np.all(plain[:, 1] == 0.5)
+
+
+def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
+    # 40 ms of dead time (beyond what the default trains on) on the nominal leg: the tuned pid
+    # is itself unstable there, so a supervisor that hands a failing residual (the stiff PID
+    # of the next test) to it still loses the loop; with the feedforward as the last resort the
+    # loop ends within the no-harm floor (0.05 mm) of the feedforward alone, which Theorem 1
+    # keeps stable whatever the regulator's delay (it has no feedback to delay).
+    sc = _sc(30.0)
+    plants = [{"pressure_dead_time_s": 0.04, "pressure_lag_s": 0.03}]
+    pid = make_baseline("pid", sc)
+    stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
+                                kd_bar_s_per_m=12.0, tf_s=0.0)
+    plain = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    chained = Supervised(stiff, make_baseline("pid", sc), DT, T,
+                         SupervisorSpec(last_resort="ff"))
+    ff = make_baseline("ff", sc)
+    m_pid, m_plain, m_chained, m_ff = (cell_metrics(r, T, DT)[0] for r in
+                                       run_batches([pid, plain, chained, ff], sc, plants, 3))
+    assert m_pid["unstable"] and m_plain["unstable"] and not m_ff["unstable"]
+    assert not m_chained["unstable"] and not m_chained["terminated"]
+    assert m_chained["position_rmse_mm"] <= m_ff["position_rmse_mm"] + 0.05
 
 
 def _sc(duration_s: float) -> object:
@@ -209,6 +254,7 @@ def _config(tmp_path, supervisor):
 @pytest.mark.parametrize("bad, match", [
     ({"fallback": "ff"}, r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb'\]"),
     ({"trip": 3.0}, r"mpa_gym\.supervisor: unknown key\(s\) \['trip'\]; allowed keys"),
+    ({"last_resort": "pid"}, r"mpa_gym\.supervisor\.last_resort='pid': allowed null or \['ff'\]"),
     ({"aperiodic_mm": -1.0},
      r"mpa_gym\.supervisor\.aperiodic_mm=-1 mm is outside the allowed range \(0, 100\] mm"),
     ({"error_window_s": "1s"}, r"mpa_gym\.supervisor\.error_window_s='1s' is not a number"),
@@ -222,6 +268,8 @@ def test_config_names_the_bad_supervisor_field(tmp_path, bad, match):
 def test_config_supervisor_defaults_and_round_trip(tmp_path):
     cfg = _config(tmp_path, {"fallback": "mbfb", "aperiodic_mm": 2.5})
     assert cfg.supervisor == SupervisorSpec(fallback="mbfb", aperiodic_mm=2.5)
+    assert cfg.supervisor.last_resort is None  # off unless asked for
+    assert "ff alone" in _config(tmp_path, {"last_resort": "ff"}).supervisor.describe()
     assert "mbfb takes over" in cfg.supervisor.describe()
     assert _config(tmp_path, None).supervisor is None
 
