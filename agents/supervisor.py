@@ -217,12 +217,6 @@ class Supervised:
                          mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
 
     @staticmethod
-    def stage(state: Any) -> np.ndarray | None:
-        """Per row, who drives: 0 the policy, 1 the fallback, 2 the last resort (None before
-        the first step)."""
-        return None if state is None else np.asarray(state[2])[:, M_STAGE]
-
-    @staticmethod
     def driving(state: Any) -> np.ndarray | None:
         """Per row, whether the fallback (or the last resort) drives (None before the first
         step)."""
