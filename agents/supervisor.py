@@ -139,9 +139,9 @@ class SupervisorSpec:
 class Supervised:
     """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
     (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
-    With ``spec.last_resort``, the monitor restarts when the fallback takes over and, if the
-    fallback's loop crosses a level too, the feedforward alone (a zero residual) drives the
-    rest of the episode.
+    With ``spec.last_resort``, the error monitor restarts when the fallback takes over and, if
+    the fallback's loop diverges too (after ``GRACE_PERIODS`` to settle), the feedforward alone
+    (a zero residual) drives the rest of the episode.
 
     State: (policy's, fallback's, monitor) with the monitor an (n, 5 + 3N) array per row: the
     ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the stage, the steps
