@@ -52,6 +52,8 @@ ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
 OBS_WRAPPER = "agents.wrappers.TrackingErrorObservation"
 ACTION_WRAPPER = "agents.wrappers.ForceStiffnessAction"
 WRAPPERS = (OBS_WRAPPER, ACTION_WRAPPER)
+# the default training config: `mpa-gym train`, `tune` and `tune-baselines` without --config
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
 EVAL_SEED = 1_000_000  # first seed of evaluation episodes: no training env draws seeds this high
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 

@@ -49,7 +49,7 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
     if any(s < 0 for s in seeds):
         raise ValueError(f"--seeds={seeds}: seeds must be >= 0")
-    from agents.train import DEFAULT_CONFIG
+    from agents.config import DEFAULT_CONFIG
 
     config = Path(config or DEFAULT_CONFIG)
     base = Path(run_dir) if run_dir else Path("runs") / config.stem

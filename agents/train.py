@@ -55,7 +55,7 @@ from stable_baselines3.common.callbacks import (
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from agents.anchor import RestObservation, rest_for_save
-from agents.config import ConfigError, TrainConfig, load_config, parse_config
+from agents.config import DEFAULT_CONFIG, ConfigError, TrainConfig, load_config, parse_config
 from agents.evaluate import Job, eval_task, metrics, run_batch
 from agents.policies import LearnedPolicy
 from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
@@ -68,8 +68,6 @@ from mpa_gym.files import (
     read_yaml,
     remove_stale_temporaries,
 )
-
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
 
 
 def make_train_env(cfg: TrainConfig, seed: int) -> VecEnv:

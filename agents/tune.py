@@ -446,7 +446,7 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     """Run one worker: at most ``n_trials`` trials of the study (fewer once the study holds
     ``max_total_trials``). ``heldout``: the scenarios of the objectives (default
     :data:`agents.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole study."""
-    from agents.train import DEFAULT_CONFIG
+    from agents.config import DEFAULT_CONFIG
 
     _check_counts(n_trials, max_total_trials, seeds_per_trial, n_timesteps, heartbeat_s)
     if objective not in OBJECTIVES:

@@ -34,11 +34,10 @@ from typing import Any
 import numpy as np
 
 from agents.baselines import make_baseline
-from agents.config import load_config
+from agents.config import DEFAULT_CONFIG, load_config
 from agents.robustness import cell_metrics, run_batch
 from mpa_gym.analysis.scenario import Randomization, Scenario, load_scenario
 
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
 # The undamped twin of a plant (module docstring): field -> "low" (the low end of its range) or
 # a value; the leg's damping at the low end, friction and the rate limit off (a slew of 0 is an

@@ -341,7 +341,8 @@ def show_evaluate(o: dict[str, Any]) -> str:
 
 
 def cmd_tune_baselines(a: argparse.Namespace) -> dict[str, Any]:
-    from agents.tune_baselines import DEFAULT_CONFIG, tune
+    from agents.config import DEFAULT_CONFIG
+    from agents.tune_baselines import tune
 
     return {"results": [tune(name, a.config or DEFAULT_CONFIG, a.n_trials, a.n_plants, a.seed)
                         for name in a.policy]}
@@ -574,7 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
     p.add_argument("--config", default=None, metavar="YAML",
                    help="PPO config whose training scenario gives the plants "
-                        "(default: the default PPO config, agents.tune_baselines.DEFAULT_CONFIG)")
+                        "(default: the default PPO config, agents.config.DEFAULT_CONFIG)")
     p.add_argument("--n-trials", type=int, default=80, metavar="N", help="Optuna trials each")
     p.add_argument("--n-plants", type=int, default=16, metavar="N",
                    help="plants drawn from the training ranges (each adds its undamped twin)")
