@@ -80,10 +80,11 @@ from agents.config import (
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
 DEFAULT_STUDY = "ppo_residual"
 # The default search space for MPALegResidual-v0 (used when the config has no mpa_gym.tune).
-# Ranges around the default config; batch sizes stay ≤ the smallest n_steps · n_envs (1024).
+# Ranges around the default config; a trial whose batch exceeds its n_steps · n_envs is pruned
+# (the objective names the combination).
 DEFAULT_SPACE: dict[str, dict[str, Any]] = {
     "n_envs": {"categorical": [16, 32, 64]},
-    "n_steps": {"categorical": [64, 128, 256]},
+    "n_steps": {"categorical": [32, 64, 128, 256]},
     "batch_size": {"categorical": [256, 512, 1024]},
     "n_epochs": {"int": [3, 10]},
     "learning_rate": {"float": [1.0e-4, 1.5e-3], "log": True},
