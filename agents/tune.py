@@ -71,6 +71,7 @@ from optuna.trial import TrialState
 
 from agents.config import (
     ACTION_WRAPPER,
+    DEFAULT_CONFIG,
     OBS_WRAPPER,
     ConfigError,
     _literal,
@@ -79,19 +80,10 @@ from agents.config import (
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
 DEFAULT_STUDY = "ppo_residual"
-# The default search space for MPALegResidual-v0 (used when the config has no mpa_gym.tune).
-# Ranges around the default config; a trial whose batch exceeds its n_steps · n_envs is pruned
-# (the objective names the combination).
-DEFAULT_SPACE: dict[str, dict[str, Any]] = {
-    "n_envs": {"categorical": [16, 32, 64]},
-    "n_steps": {"categorical": [32, 64, 128, 256]},
-    "batch_size": {"categorical": [256, 512, 1024]},
-    "n_epochs": {"int": [3, 10]},
-    "learning_rate": {"float": [1.0e-4, 1.5e-3], "log": True},
-    "gae_lambda": {"float": [0.9, 0.98]},
-    "policy_kwargs.log_std_init": {"float": [-3.0, -1.0]},
-    "ForceStiffnessAction.rate_penalty": {"float": [0.1, 1.0]},
-}
+# The default search space for MPALegResidual-v0 (used when a config has no mpa_gym.tune): the
+# default config's own section, so the space is written once, next to the values it varies.
+DEFAULT_SPACE: dict[str, dict[str, Any]] = yaml.safe_load(
+    DEFAULT_CONFIG.read_text())["mpa_gym"]["tune"]
 OBJECTIVES = {"both": ("position_rmse_mm", "stiffness_err_pct"), "position": ("position_rmse_mm",)}
 COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 # heartbeat, its retry callback and metric names are experimental in Optuna; used as documented
@@ -447,8 +439,6 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     """Run one worker: at most ``n_trials`` trials of the study (fewer once the study holds
     ``max_total_trials``). ``heldout``: the scenarios of the objectives (default
     :data:`agents.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole study."""
-    from agents.config import DEFAULT_CONFIG
-
     _check_counts(n_trials, max_total_trials, seeds_per_trial, n_timesteps, heartbeat_s)
     if objective not in OBJECTIVES:
         raise ValueError(f"--objective={objective!r}: allowed {sorted(OBJECTIVES)}")
