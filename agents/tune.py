@@ -77,13 +77,14 @@ from agents.config import (
     _literal,
     parse_config,
 )
+from mpa_gym.files import read_yaml
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
 DEFAULT_STUDY = "ppo_residual"
 # The default search space for MPALegResidual-v0 (used when a config has no mpa_gym.tune): the
 # default config's own section, so the space is written once, next to the values it varies.
-DEFAULT_SPACE: dict[str, dict[str, Any]] = yaml.safe_load(
-    DEFAULT_CONFIG.read_text())["mpa_gym"]["tune"]
+DEFAULT_SPACE: dict[str, dict[str, Any]] = read_yaml(DEFAULT_CONFIG, "default config",
+                                                     ConfigError)["mpa_gym"]["tune"]
 OBJECTIVES = {"both": ("position_rmse_mm", "stiffness_err_pct"), "position": ("position_rmse_mm",)}
 COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 # heartbeat, its retry callback and metric names are experimental in Optuna; used as documented

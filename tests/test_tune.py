@@ -157,14 +157,16 @@ def test_best_writes_a_config_that_trains(tmp_path):
 def test_a_combination_ppo_refuses_is_pruned_and_named(tmp_path):
     # The default space holds n_steps 32 with n_envs 16 and batch_size 1024: a 512-sample
     # rollout that PPO cannot split into 1024-sample minibatches. Such a trial is pruned
-    # before training, with the config's own message, and the study goes on.
+    # before training, with the config's own message, and the worker goes on to the next.
     db = f"sqlite:///{tmp_path}/s.db"
     cfg = tiny_tune_config(tmp_path / "c.yaml", {"batch_size": {"categorical": [256]}})
-    tune(cfg, db, "bad", n_trials=1, heldout=[str(short_heldout(tmp_path / "h.yaml"))],
+    tune(cfg, db, "bad", n_trials=2, heldout=[str(short_heldout(tmp_path / "h.yaml"))],
          out_dir=tmp_path / "runs")
-    (t,) = optuna.load_study(study_name="bad", storage=db).trials
-    assert t.state == TrialState.PRUNED and t.params["batch_size"] == 256
-    assert "batch_size=256 must be <= n_steps * n_envs" in t.user_attrs["invalid"]
+    trials = optuna.load_study(study_name="bad", storage=db).trials
+    assert len(trials) == 2
+    for t in trials:
+        assert t.state == TrialState.PRUNED and t.params["batch_size"] == 256
+        assert "batch_size=256 must be <= n_steps * n_envs" in t.user_attrs["invalid"]
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("model.zip"))
 
 
