@@ -41,10 +41,15 @@ def cores() -> int:
 
 def train_seeds(seeds: list[int], config: str | Path | None = None,
                 run_dir: str | Path | None = None, n_timesteps: int | None = None,
-                jobs: int | None = None, scenario: str | None = None) -> list[dict[str, Any]]:
+                jobs: int | None = None, scenario: str | None = None,
+                eval_worker: bool | None = None) -> list[dict[str, Any]]:
     """Train one run per seed in its own process (``jobs`` at once, default the cores); the
     runs go to ``<run_dir>-s<seed>`` (default ``runs/<config stem>-s<seed>``). Returns each
-    process's ``mpa-gym train --json`` output; a failed seed raises after the others finish."""
+    process's ``mpa-gym train --json`` output; a failed seed raises after the others finish.
+
+    ``eval_worker`` (``mpa-gym train --eval-worker``): None gives each run an evaluation worker
+    only if there is a spare core for every run at once (else the workers would slow the other
+    seeds' training as much as they speed up their own)."""
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
     if any(s < 0 for s in seeds):
@@ -58,6 +63,9 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         if (f / "model.zip").exists():
             raise ValueError(f"run folder {f} already holds a model; choose another --run-dir")
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    at_once = min(jobs or cores(), len(seeds))
+    if eval_worker is None:
+        eval_worker = None if cores() >= 2 * at_once else False
 
     def one(seed: int, folder: Path) -> dict[str, Any]:
         cmd = [sys.executable, "-m", "mpa_gym.cli", "train", "--config", str(config),
@@ -66,12 +74,14 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
             cmd += ["--n-timesteps", str(n_timesteps)]
         if scenario is not None:
             cmd += ["--scenario", str(scenario)]
+        if eval_worker is not None:
+            cmd.append("--eval-worker" if eval_worker else "--no-eval-worker")
         r = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if r.returncode != 0:
             return {"run_dir": str(folder), "seed": seed, "error": r.stderr.strip()[-2000:]}
         return {**json.loads(r.stdout), "seed": seed}
 
-    with ThreadPoolExecutor(max_workers=jobs or cores()) as pool:
+    with ThreadPoolExecutor(max_workers=at_once) as pool:
         out = list(pool.map(one, seeds, folders))
     failed = [o for o in out if "error" in o]
     if failed:

@@ -32,7 +32,10 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import io
 import json
+import multiprocessing
+import multiprocessing.connection
 import os
 import pickle
 import signal
@@ -115,13 +118,139 @@ class TrackingMetrics(BaseCallback):
                                float(np.sqrt(np.mean(self._k2)) * 100))
 
 
+def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normalizer: Any
+                     ) -> list[tuple[dict[str, Any], int]]:
+    """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario:
+    all at once, one batched policy call per step (``agents.evaluate.run_batch``)."""
+    policy = LearnedPolicy.from_config(model, normalizer, cfg)
+    task = eval_task(cfg)
+    traces = run_batch([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
+    return [(metrics(tr, sc.reference.period, None), len(tr.t))
+            for sc, tr in zip(scenarios, traces, strict=True)]
+
+
+class _PolicyOnly:
+    """What ``LearnedPolicy`` uses of an SB3 model (``policy``, ``predict``), for a policy
+    unpickled in the evaluation worker without its algorithm."""
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        return self.policy.predict(obs, deterministic=deterministic)
+
+
+_WORKER: dict[str, Any] = {}  # the evaluation worker's config and loaded scenarios
+
+
+def _ignore_stop_signals() -> None:
+    """SIGINT and SIGTERM ignored. A Ctrl-C at the terminal reaches the whole process group,
+    the worker too: the training process decides what happens (it records the evaluation under
+    way, then closes the worker)."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+
+
+def _worker_ready() -> None:
+    """A first task, so that the worker is spawned when the pool is made."""
+
+
+def _worker_init(cfg: TrainConfig) -> None:
+    import torch
+
+    torch.set_num_threads(1)  # the worker is the second core; one thread is the whole of it
+    _ignore_stop_signals()  # already, unless spawned from a thread other than the main one
+    _WORKER.update(cfg=cfg, scenarios=[load_scenario(s) for s in cfg.eval_scenarios])
+    # the task queue's pipe stays open in the worker itself, so a SIGKILLed parent would leave
+    # it waiting for ever: it exits when its parent's sentinel fires
+    parent = multiprocessing.parent_process()
+    if parent is not None:
+        def watch() -> None:
+            multiprocessing.connection.wait([parent.sentinel])
+            os._exit(0)
+
+        threading.Thread(target=watch, daemon=True).start()
+
+
+def _evaluate_pickled(cfg: TrainConfig, scenarios: list[Any], snapshot: tuple[bytes, bytes | None]
+                      ) -> list[tuple[dict[str, Any], int]]:
+    policy, normalizer = snapshot
+    norm = pickle.loads(normalizer) if normalizer is not None else None
+    return held_out_metrics(cfg, scenarios, _PolicyOnly(pickle.loads(policy)), norm)
+
+
+def _worker_evaluate(snapshot: tuple[bytes, bytes | None]) -> list[tuple[dict[str, Any], int]]:
+    return _evaluate_pickled(_WORKER["cfg"], _WORKER["scenarios"], snapshot)
+
+
+class EvalWorker:
+    """A spawned process that runs held-out evaluations while training goes on.
+
+    Each evaluation gets a pickled copy of the policy and its normaliser as they are at the
+    evaluation's step (``snapshot``), so its figures are those of an evaluation in the training
+    process, bit for bit (tested). The worker exits with the training process, even a
+    SIGKILLed one."""
+
+    def __init__(self, cfg: TrainConfig) -> None:
+        from concurrent.futures import ProcessPoolExecutor
+
+        before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        # spawned while the stop signals are ignored, which a new interpreter inherits, so not
+        # even a Ctrl-C during the worker's imports reaches it (only the main thread may set
+        # handlers, and only one set from Python, not None, can be put back)
+        ignore = (threading.current_thread() is threading.main_thread()
+                  and None not in before.values())
+        if ignore:
+            _ignore_stop_signals()
+        try:
+            self._pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"),
+                                             initializer=_worker_init, initargs=(cfg,))
+            self._pool.submit(_worker_ready)
+        finally:
+            if ignore:
+                for s, h in before.items():
+                    signal.signal(s, h)
+
+    @staticmethod
+    def snapshot(model: Any, normalizer: Any) -> tuple[bytes, bytes | None]:
+        """The policy and normaliser as they are now, pickled."""
+        return (pickle.dumps(model.policy),
+                pickle.dumps(normalizer) if normalizer is not None else None)
+
+    def submit(self, snapshot: tuple[bytes, bytes | None]) -> Any:
+        """Start an evaluation of ``snapshot``; returns its ``Future``."""
+        return self._pool.submit(_worker_evaluate, snapshot)
+
+    def close(self, wait: bool = True) -> None:
+        """Let the worker finish what it was given (``wait``) or drop it, and reap it."""
+        self._pool.shutdown(wait=True, cancel_futures=not wait)
+
+
+def eval_worker_pays(cfg: TrainConfig, steps: int, on_evaluation: Any) -> bool:
+    """Whether held-out evaluations go to an ``EvalWorker`` when the caller does not say.
+
+    Yes when this process may use a second core, there are scenarios to evaluate, the budget
+    spans at least two evaluation intervals (the worker's start, a few seconds of imports on
+    the second core, is then paid back) and nobody acts on an evaluation's result at its step
+    (``on_evaluation``, e.g. tuning's pruner, wants training stopped where it evaluated)."""
+    from agents.seeds import cores
+
+    return (cores() >= 2 and bool(cfg.eval_scenarios) and on_evaluation is None
+            and cfg.eval_freq > 0 and steps >= 2 * cfg.eval_freq)
+
+
 class HeldOutEval(EvalCallback):
     """SB3's EvalCallback on held-out scenarios, one deterministic episode each, with the
     tracking metrics of each scenario logged beside the return. Writes ``evaluations.npz`` in
-    EvalCallback's format and ``evaluations.json`` with the per-scenario metrics."""
+    EvalCallback's format and ``evaluations.json`` with the per-scenario metrics.
+
+    With ``worker`` the evaluations run in an ``EvalWorker`` while training goes on: each is
+    recorded (history, TensorBoard, ``best/``) when its result arrives, in order, the last one
+    at the end of training; ``best/`` gets the model as it was at the evaluation's step."""
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, eval_freq_calls: int,
-                 on_evaluation: Callable[[dict[str, Any]], bool] | None = None) -> None:
+                 on_evaluation: Callable[[dict[str, Any]], bool] | None = None,
+                 worker: bool = False) -> None:
         placeholder = gym.make(cfg.env_id)  # EvalCallback wants an env; we roll out our own
         super().__init__(placeholder, eval_freq=eval_freq_calls, n_eval_episodes=1,
                          log_path=str(run_dir / "eval"),
@@ -133,6 +262,9 @@ class HeldOutEval(EvalCallback):
         # called with each evaluation's entry; returning False stops training (tuning's pruner)
         self.on_evaluation = on_evaluation
         self._go_on = True
+        self._worker = EvalWorker(cfg) if worker and self.scenarios else None
+        # the evaluation under way in the worker: (step, snapshot, Future, best/'s writer)
+        self._pending: tuple[int, Any, Any, Callable[[], None] | None] | None = None
 
     def _init_callback(self) -> None:
         # EvalCallback's own init compares env types; our rollouts use single envs, so only
@@ -155,44 +287,103 @@ class HeldOutEval(EvalCallback):
             self._evaluate()
 
     def _on_step(self) -> bool:
+        if self._pending is not None and self._pending[2].done():
+            self._collect()
         if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
             self._evaluate()
         return self._go_on
+
+    def _on_training_end(self) -> None:
+        if self._pending is not None:
+            self._collect()
+            self.logger.dump(self.num_timesteps)  # no rollout end follows to write its scalars
+
+    def close(self, wait: bool = True) -> None:
+        """Record the evaluation still under way (``wait``; else drop it) and stop the worker."""
+        if self._worker is None:
+            return
+        try:
+            if wait and self._pending is not None:
+                self._collect()
+        finally:
+            self._pending = None
+            self._worker.close(wait)
+            self._worker = None
 
     def _evaluate(self) -> None:
         if not self.scenarios:
             return
         norm = self.model.get_vec_normalize_env()
-        policy = LearnedPolicy.from_config(self.model, norm, self.cfg)
-        entry: dict[str, Any] = {"timesteps": int(self.num_timesteps), "scenarios": {}}
-        returns, lengths = [], []
-        # all scenarios at once, one batched policy call per step (agents.evaluate.run_batch)
-        task = eval_task(self.cfg)
-        traces = run_batch([Job(sc, policy, self.cfg.env_id, task) for sc in self.scenarios],
-                           self.cfg.eval_seed)
-        for sc, tr in zip(self.scenarios, traces, strict=True):
-            m = metrics(tr, sc.reference.period, None)
+        folder = Path(self.best_model_save_path or ".")
+        if self._worker is None:
+            live = None
+            if model_is_finite(self.model):
+                def live() -> None:
+                    save_state(self.model, folder / "best_model.zip", folder / "vecnormalize.pkl")
+            self._record(int(self.num_timesteps),
+                         held_out_metrics(self.cfg, self.scenarios, self.model, norm), live)
+            return
+        if self._pending is not None:  # evaluations are recorded in order
+            self._collect()
+        saved = None
+        if model_is_finite(self.model):  # what best/ gets if this evaluation is the best
+            buf = io.BytesIO()
+            with rest_for_save(self.model):
+                self.model.save(buf)
+            model_bytes = buf.getvalue()
+            norm_bytes = pickle.dumps(norm) if norm is not None else None
+
+            def saved() -> None:  # in save_state's order
+                atomic_save(folder / "best_model.zip", lambda f: f.write(model_bytes))
+                if norm_bytes is not None:
+                    atomic_save(folder / "vecnormalize.pkl", lambda f: f.write(norm_bytes))
+        snap = EvalWorker.snapshot(self.model, norm)
+        self._pending = (int(self.num_timesteps), snap, self._worker.submit(snap), saved)
+
+    def _collect(self) -> None:
+        """Wait for the worker's evaluation under way and record it. If the worker died (or
+        could not start: a ``__main__`` a spawned process cannot import), this evaluation and
+        the later ones run in the training process, and it is said."""
+        from concurrent.futures.process import BrokenProcessPool
+
+        assert self._pending is not None and self._worker is not None
+        steps, snap, future, saved = self._pending
+        self._pending = None
+        try:
+            results = future.result()
+        except BrokenProcessPool as e:
+            _say(f"the evaluation worker stopped ({e}); evaluating in this process from the "
+                 f"evaluation at step {steps} on")
+            self._worker.close(wait=False)
+            self._worker = None
+            results = _evaluate_pickled(self.cfg, self.scenarios, snap)
+        self._record(steps, results, saved)
+
+    def _record(self, steps: int, results: list[tuple[dict[str, Any], int]],
+                save_best: Callable[[], None] | None) -> None:
+        """The evaluation at ``steps`` into the history and TensorBoard; ``save_best`` (None
+        for a non-finite model) writes ``best/`` if it is the best so far."""
+        entry: dict[str, Any] = {"timesteps": steps, "scenarios": {}}
+        returns = []
+        for sc, (m, _) in zip(self.scenarios, results, strict=True):
             entry["scenarios"][sc.name] = m
             returns.append(m["return"])
-            lengths.append(len(tr.t))
             self.logger.record(f"eval/{sc.name}/position_rmse_mm", m["position_rmse_mm"])
             self.logger.record(f"eval/{sc.name}/stiffness_err_pct", m["stiffness_rmse_pct"])
         mean_ret = float(np.mean(returns))
         self.logger.record("eval/mean_reward", mean_ret)
-        self.evaluations_timesteps.append(self.num_timesteps)
+        self.evaluations_timesteps.append(steps)
         self.evaluations_results.append(returns)
-        self.evaluations_length.append(lengths)
+        self.evaluations_length.append([n for _, n in results])
         self.history.append(entry)
         write_eval_history(self.json_path.parent, self.history, self.evaluations_timesteps,
                            self.evaluations_results, self.evaluations_length)
         if self.on_evaluation is not None:
             self._go_on = bool(self.on_evaluation(entry))
         self.last_mean_reward = mean_ret
-        if mean_ret > self.best_mean_reward and model_is_finite(self.model):
+        if mean_ret > self.best_mean_reward and save_best is not None:
             self.best_mean_reward = mean_ret
-            assert self.best_model_save_path is not None
-            save_state(self.model, Path(self.best_model_save_path) / "best_model.zip",
-                       Path(self.best_model_save_path) / "vecnormalize.pkl")
+            save_best()
 
 
 # ----------------------------------------------------------------------------- run-folder state
@@ -545,10 +736,12 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
           seed: int | None = None, resume: str | Path | None = None,
           n_timesteps: int | None = None, progress: bool = True, verbose: int = 0,
           on_evaluation: Callable[[dict[str, Any]], bool] | None = None,
-          scenario: str | Path | None = None) -> Path:
+          scenario: str | Path | None = None, eval_worker: bool | None = None) -> Path:
     """Train (or resume) PPO; returns the run folder. ``on_evaluation`` is called with each
     held-out evaluation (``eval/evaluations.json``'s entry); returning False stops training.
     ``scenario`` replaces the config's training scenario (:func:`with_scenario`).
+    ``eval_worker``: the held-out evaluations run in a second process while training goes on
+    (``HeldOutEval``); None decides by :func:`eval_worker_pays`.
 
     Raises ``TrainingStopped`` after saving when a signal (Ctrl-C, SIGTERM) or the NaN guard
     ended training early."""
@@ -640,12 +833,15 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
 
     calls = lambda every: max(1, every // cfg.n_envs)  # noqa: E731  (env steps → callback calls)
     stop = StopRequest()
+    if eval_worker is None:
+        eval_worker = eval_worker_pays(cfg, steps, on_evaluation)
+    held_out = HeldOutEval(cfg, run, calls(cfg.eval_freq), on_evaluation, eval_worker)
     callbacks = CallbackList([
         stop,
         NaNGuard(),
         TrackingMetrics(),
         RestObservation(),
-        HeldOutEval(cfg, run, calls(cfg.eval_freq), on_evaluation),
+        held_out,
         CompleteCheckpoints(run, calls(cfg.checkpoint_freq)),
     ])
     try:
@@ -668,7 +864,11 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
             finally:
                 if model_is_finite(model):  # Ctrl-C, SIGTERM or an error: keep what was learned
                     save_final(model, run)
+    except KeyboardInterrupt:  # a second Ctrl-C: nobody waits for the evaluation under way
+        held_out.close(wait=False)
+        raise
     finally:
+        held_out.close()  # an evaluation still under way is recorded (a fault loses nothing)
         env.close()
     if stop.requested is not None:
         name = signal.Signals(stop.requested).name

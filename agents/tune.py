@@ -388,8 +388,10 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
                 trial.report(v, offset + entry["timesteps"])
                 return not trial.should_prune()
 
+            # in this process: the workers are the parallelism, and the pruner stops training
+            # at the step it evaluated
             train(cfg_path, run_dir, seed, n_timesteps=steps, progress=False,
-                  on_evaluation=report)
+                  on_evaluation=report, eval_worker=False)
             run_dirs.append(str(run_dir))
             if objective == "position" and trial.should_prune():
                 trial.set_user_attr("wall_s", time.perf_counter() - t0)

@@ -264,10 +264,10 @@ def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
         if a.seed is not None or a.resume is not None:
             raise ValueError("--seeds trains new runs; it goes without --seed and --resume")
         return {"runs": train_seeds(a.seeds, a.config, a.run_dir, a.n_timesteps, a.jobs,
-                                    a.scenario)}
+                                    a.scenario, a.eval_worker)}
     try:
         run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps,
-                    progress=not a.no_progress, scenario=a.scenario)
+                    progress=not a.no_progress, scenario=a.scenario, eval_worker=a.eval_worker)
     except TrainingStopped as e:
         code = 128 + e.signum if e.signum is not None else 1
         raise CommandStopped(None, e.reason, code) from None
@@ -555,6 +555,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="with --seeds: processes at once (default: the cores)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--eval-worker", action=argparse.BooleanOptionalAction, default=None,
+                   help="held-out evaluations in a second process while training goes on "
+                        "(default: when this process may use two cores and the budget spans "
+                        "two evaluation intervals)")
     p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
             cmd_evaluate, show_evaluate)
     p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],

@@ -125,13 +125,19 @@ def test_killed_twice_at_random_points_resumes_without_going_back(tmp_path):
     assert cfg.n_timesteps == total
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
-def test_sigterm_and_ctrl_c_save_like_a_normal_end(tmp_path, sig):
+@pytest.mark.parametrize(("sig", "group"), [(signal.SIGTERM, False), (signal.SIGINT, False),
+                                            (signal.SIGINT, True)])
+def test_sigterm_and_ctrl_c_save_like_a_normal_end(tmp_path, sig, group):
+    """``group``: the signal goes to the whole process group, as a terminal's Ctrl-C does, so
+    the evaluation worker gets it too (and ignores it: training decides)."""
     run = tmp_path / "run"
     proc = start(["--config", str(tiny_config(tmp_path, 10**6, checkpoint_freq=128)),
-                  "--run-dir", str(run)])
+                  "--run-dir", str(run), "--eval-worker"], start_new_session=group)
     newest = wait_for_checkpoint_after(proc, run, 0)
-    proc.send_signal(sig)
+    if group:
+        os.killpg(proc.pid, sig)
+    else:
+        proc.send_signal(sig)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + sig, err
     assert "Traceback" not in err
@@ -319,3 +325,100 @@ def test_nan_guard_on_the_command_line_exits_1_with_one_line(tmp_path, monkeypat
     err = capsys.readouterr().err
     assert code == 1 and err.count("\n") == 1, err
     assert err.startswith("mpa-gym train: NaN guard:") and "kept the last finite state" in err
+
+
+# ----------------------------------------------------------------------------- evaluation worker
+def _state(path):
+    return PPO.load(path, device="cpu").policy.state_dict()
+
+
+def _same_run(a, b):
+    """Two runs with the same evaluation history (bit for bit), best/ and final model."""
+    ha, hb = (json.loads((r / "eval" / "evaluations.json").read_text()) for r in (a, b))
+    assert ha == hb
+    for name in ("best/best_model.zip", "model.zip"):
+        sa, sb = _state(a / name), _state(b / name)
+        assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa), name
+    na, nb = (load_run(r, "best")[0].normalizer for r in (a, b))
+    assert np.array_equal(na.obs_rms.mean, nb.obs_rms.mean)
+    assert np.array_equal(na.obs_rms.var, nb.obs_rms.var)
+    return ha
+
+
+@pytest.fixture(scope="module")
+def in_process_run(tmp_path_factory):
+    """Evaluations at 0, 256, 512 and 768 steps, all in the training process."""
+    tmp = tmp_path_factory.mktemp("in_process")
+    return train(tiny_config(tmp, 768, eval_freq=256), tmp / "run", progress=False,
+                 eval_worker=False)
+
+
+def test_evaluations_in_the_worker_are_those_of_the_training_process(in_process_run, tmp_path):
+    """The worker evaluates a pickled copy of the policy and normaliser at the evaluation's
+    step, and best/ gets the model saved at that step: the run is the in-process one."""
+    run = train(tiny_config(tmp_path, 768, eval_freq=256), tmp_path / "run", progress=False,
+                eval_worker=True)
+    hist = _same_run(run, in_process_run)
+    assert [h["timesteps"] for h in hist] == [0, 256, 512, 768]
+
+
+def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, monkeypatch,
+                                                    capsys):
+    """SIGKILL of the evaluation worker while its first evaluation is under way: training says
+    so and evaluates that one and the rest itself; nothing is lost or changed."""
+    from agents import train as tr
+
+    submit = tr.EvalWorker.submit
+
+    def submit_and_kill(self, snap):
+        future = submit(self, snap)
+        for proc in list(self._pool._processes.values()):  # the worker, a real process
+            os.kill(proc.pid, signal.SIGKILL)
+        return future
+
+    monkeypatch.setattr(tr.EvalWorker, "submit", submit_and_kill)
+    run = train(tiny_config(tmp_path, 768, eval_freq=256), tmp_path / "run", progress=False,
+                eval_worker=True)
+    err = capsys.readouterr().err
+    assert "the evaluation worker stopped" in err and "from the evaluation at step 0 on" in err
+    _same_run(run, in_process_run)
+
+
+def _children(pid):
+    """The pids of a process's children (every thread's), from /proc."""
+    out = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out |= {int(c) for c in open(f"/proc/{pid}/task/{task}/children").read().split()}
+        except OSError:
+            pass
+    return out
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
+    except OSError:
+        return False
+
+
+def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
+    """SIGKILL of training (nothing of it runs to close the worker): the worker, left holding
+    its own end of the task queue, exits by itself, as does multiprocessing's tracker."""
+    run = tmp_path / "run"
+    proc = start(["--config", str(tiny_config(tmp_path, 10**6, checkpoint_freq=128)),
+                  "--run-dir", str(run), "--eval-worker"])
+    deadline = time.monotonic() + 120
+    while not (run / "eval" / "evaluations.json").is_file():  # the worker has answered once
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    kids = _children(proc.pid)
+    assert kids and all(_alive(k) for k in kids)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.communicate()
+    deadline = time.monotonic() + 30
+    while any(_alive(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(k) for k in kids), [open(f"/proc/{k}/cmdline").read() for k in kids
+                                              if _alive(k)]
