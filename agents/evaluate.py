@@ -223,12 +223,15 @@ def make_env(env_id: str, scenario: Any, run_cfg: Any = None) -> gym.Env:
 
 
 def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
-             robustness: bool = False, batched: bool = True) -> dict[str, Any]:
+             robustness: bool = False, batched: bool = True,
+             plots_dir: str | Path | None = None) -> dict[str, Any]:
     """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
     the robustness sweep if ``robustness``.
 
     All episodes run as one batch (:func:`run_batch`); ``batched=False`` runs them one after
-    another (:func:`run_episode`), with the same numbers."""
+    another (:func:`run_episode`), with the same numbers. ``plots_dir``: the scenario plots
+    (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
+    :func:`write_report` after it (``report["plots"]``)."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
@@ -246,6 +249,13 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         if swept:
             swept.cancel()
         raise
+    if swept and plots_dir is not None:
+        try:
+            Path(plots_dir).mkdir(parents=True, exist_ok=True)
+            report["plots"] = plot(report, Path(plots_dir))
+        except BaseException:
+            swept.cancel()
+            raise
     if robustness:
         from agents.robustness import robustness as sweep
 
@@ -517,7 +527,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "controllers": report.get("controllers", {}),
             "supervisors": report.get("supervisors", {}),
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
-    plots = plot(report, out / "plots")
+    plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
         from agents.robustness import plot as robustness_plot
 

@@ -296,7 +296,8 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     if not 0 <= a.seed <= 2**32 - 1:
         raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
     scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
-    report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness)
+    report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness,
+                      plots_dir=Path(a.out) / "plots")
     paths = write_report(report, a.out)
     data = json.loads(paths["json"].read_text())
     return {"results": data["results"], "robustness": data.get("robustness"),

@@ -247,3 +247,22 @@ def test_sweep_in_a_second_process_gives_the_same_numbers_and_errors():
     with pytest.raises(ValueError) as here:
         robustness(["no_such_controller"], **kwargs)
     assert str(there.value) == str(here.value)
+
+
+def test_scenario_plots_are_drawn_while_the_sweep_finishes(tmp_path):
+    # with plots_dir, evaluate draws the scenario plots between its batch and the sweep's
+    # result; write_report then keeps them (not drawn twice) and adds the sweep's own
+    import os
+
+    from agents.evaluate import evaluate, write_report
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("a single core: the sweep runs after the batch, nothing to overlap")
+    rep = evaluate(["ff"], [{"name": "a", "duration_s": 1.0}], robustness=True,
+                   plots_dir=tmp_path / "plots")
+    assert rep["plots"] == [tmp_path / "plots" / "a.png"]
+    drawn = rep["plots"][0].stat().st_mtime_ns
+    paths = write_report(rep, tmp_path)
+    assert paths["plot_a"] == rep["plots"][0] and rep["plots"][0].stat().st_mtime_ns == drawn
+    assert len(list((tmp_path / "plots").glob("*.png"))) > 1  # and the sweep's heatmaps
+    assert "robustness" in json.loads(paths["json"].read_text())
