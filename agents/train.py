@@ -226,17 +226,25 @@ class EvalWorker:
         self._pool.shutdown(wait=True, cancel_futures=not wait)
 
 
+# env steps of the default config per second are ~1e4 on one core: an interval of 1e4 steps
+# lasts about as long as the worker takes to start (the default's 2.5e5 lasts ~30 s)
+WORKER_MIN_EVAL_FREQ = 10_000
+
+
 def eval_worker_pays(cfg: TrainConfig, steps: int, on_evaluation: Any) -> bool:
     """Whether held-out evaluations go to an ``EvalWorker`` when the caller does not say.
 
     Yes when this process may use a second core, there are scenarios to evaluate, the budget
-    spans at least two evaluation intervals (the worker's start, a few seconds of imports on
-    the second core, is then paid back) and nobody acts on an evaluation's result at its step
-    (``on_evaluation``, e.g. tuning's pruner, wants training stopped where it evaluated)."""
+    spans at least two evaluation intervals of at least ``WORKER_MIN_EVAL_FREQ`` env steps each
+    (the worker's start, a few seconds of imports on the second core, is then paid back: a
+    shorter interval passes before the worker has answered, and training waits for it) and
+    nobody acts on an evaluation's result at its step (``on_evaluation``, e.g. tuning's pruner,
+    wants training stopped where it evaluated)."""
     from agents.seeds import cores
 
     return (cores() >= 2 and bool(cfg.eval_scenarios) and on_evaluation is None
-            and cfg.eval_freq > 0 and steps >= 2 * cfg.eval_freq)
+            and cfg.eval_freq >= WORKER_MIN_EVAL_FREQ and steps >= 2 * cfg.eval_freq)
+
 
 
 class HeldOutEval(EvalCallback):

@@ -559,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-worker", action=argparse.BooleanOptionalAction, default=None,
                    help="held-out evaluations in a second process while training goes on "
                         "(default: when this process may use two cores and the budget spans "
-                        "two evaluation intervals)")
+                        "two evaluation intervals of at least 10,000 env steps)")
     p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
             cmd_evaluate, show_evaluate)
     p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],

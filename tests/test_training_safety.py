@@ -422,3 +422,17 @@ def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
         time.sleep(0.1)
     assert not any(_alive(k) for k in kids), [open(f"/proc/{k}/cmdline").read() for k in kids
                                               if _alive(k)]
+
+
+def test_the_worker_is_the_default_only_where_it_pays():
+    from agents.config import DEFAULT_CONFIG
+    from agents.seeds import cores
+    from agents.train import eval_worker_pays
+
+    cfg = load_config(DEFAULT_CONFIG)
+    assert eval_worker_pays(cfg, cfg.n_timesteps, None) == (cores() >= 2)
+    assert not eval_worker_pays(cfg, cfg.eval_freq, None)  # one interval: nothing to overlap
+    assert not eval_worker_pays(cfg, cfg.n_timesteps, lambda entry: True)  # a pruner's caller
+    short = load_config(DEFAULT_CONFIG)
+    short.eval_freq = 1024  # over before the worker has started
+    assert not eval_worker_pays(short, 10**6, None)
