@@ -390,8 +390,8 @@ def _children(pid):
     for task in os.listdir(f"/proc/{pid}/task"):
         try:
             out |= {int(c) for c in open(f"/proc/{pid}/task/{task}/children").read().split()}
-        except OSError:
-            pass
+        except OSError:  # the thread ended between the listing and the read: no children
+            continue
     return out
 
 
