@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import os
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -305,24 +305,33 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
 
 
 class Background:
-    """A function call running in a spawned worker process (``multiprocessing.Pool``)."""
+    """A function call running in a spawned worker process (``agents.worker.Worker``: it ignores
+    Ctrl-C, exits with a SIGKILLed parent, and a dead one fails its call rather than hangs)."""
 
-    def __init__(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
-        self._pool = multiprocessing.get_context("spawn").Pool(1)
-        self._call = self._pool.apply_async(fn, args, kwargs)
+    def __init__(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        from agents.worker import Worker
+
+        self._worker = Worker()
+        self._what, self._fn, self._args, self._kwargs = what, fn, args, kwargs
+        self._call = self._worker.submit(fn, *args, **kwargs)
 
     def result(self) -> Any:
-        """Wait for the call, raise its error if it failed, and reap the worker."""
+        """Wait for the call, raise its error if it failed, and reap the worker. If the worker
+        died (or could not start), the call runs in this process, and it is said."""
+        from concurrent.futures.process import BrokenProcessPool
+
         try:
-            return self._call.get()
+            return self._call.result()
+        except BrokenProcessPool as e:
+            print(f"mpa-gym evaluate: the worker of {self._what} stopped ({e}); running "
+                  f"{self._what} in this process", file=sys.stderr, flush=True)
         finally:
-            self._pool.close()
-            self._pool.join()
+            self._worker.close()
+        return self._fn(*self._args, **self._kwargs)
 
     def cancel(self) -> None:
         """Stop the worker now (the caller failed or was interrupted: nobody waits for it)."""
-        self._pool.terminate()
-        self._pool.join()
+        self._worker.terminate()
 
 
 def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None:
@@ -332,7 +341,7 @@ def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None
         return None
     from agents.robustness import robustness as sweep
 
-    return Background(sweep, policies, **kwargs)
+    return Background("the robustness sweep", sweep, policies, **kwargs)
 
 
 def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:

@@ -34,8 +34,6 @@ import contextlib
 import copy
 import io
 import json
-import multiprocessing
-import multiprocessing.connection
 import os
 import pickle
 import signal
@@ -143,33 +141,11 @@ class _PolicyOnly:
 _WORKER: dict[str, Any] = {}  # the evaluation worker's config and loaded scenarios
 
 
-def _ignore_stop_signals() -> None:
-    """SIGINT and SIGTERM ignored. A Ctrl-C at the terminal reaches the whole process group,
-    the worker too: the training process decides what happens (it records the evaluation under
-    way, then closes the worker)."""
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, signal.SIG_IGN)
-
-
-def _worker_ready() -> None:
-    """A first task, so that the worker is spawned when the pool is made."""
-
-
 def _worker_init(cfg: TrainConfig) -> None:
     import torch
 
     torch.set_num_threads(1)  # the worker is the second core; one thread is the whole of it
-    _ignore_stop_signals()  # already, unless spawned from a thread other than the main one
     _WORKER.update(cfg=cfg, scenarios=[load_scenario(s) for s in cfg.eval_scenarios])
-    # the task queue's pipe stays open in the worker itself, so a SIGKILLed parent would leave
-    # it waiting for ever: it exits when its parent's sentinel fires
-    parent = multiprocessing.parent_process()
-    if parent is not None:
-        def watch() -> None:
-            multiprocessing.connection.wait([parent.sentinel])
-            os._exit(0)
-
-        threading.Thread(target=watch, daemon=True).start()
 
 
 def _evaluate_pickled(cfg: TrainConfig, scenarios: list[Any], snapshot: tuple[bytes, bytes | None]
@@ -188,28 +164,13 @@ class EvalWorker:
 
     Each evaluation gets a pickled copy of the policy and its normaliser as they are at the
     evaluation's step (``snapshot``), so its figures are those of an evaluation in the training
-    process, bit for bit (tested). The worker exits with the training process, even a
-    SIGKILLed one."""
+    process, bit for bit (tested). The worker (``agents.worker.Worker``) ignores Ctrl-C and exits
+    with the training process, even a SIGKILLed one."""
 
     def __init__(self, cfg: TrainConfig) -> None:
-        from concurrent.futures import ProcessPoolExecutor
+        from agents.worker import Worker
 
-        before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        # spawned while the stop signals are ignored, which a new interpreter inherits, so not
-        # even a Ctrl-C during the worker's imports reaches it (only the main thread may set
-        # handlers, and only one set from Python, not None, can be put back)
-        ignore = (threading.current_thread() is threading.main_thread()
-                  and None not in before.values())
-        if ignore:
-            _ignore_stop_signals()
-        try:
-            self._pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"),
-                                             initializer=_worker_init, initargs=(cfg,))
-            self._pool.submit(_worker_ready)
-        finally:
-            if ignore:
-                for s, h in before.items():
-                    signal.signal(s, h)
+        self._worker = Worker(_worker_init, (cfg,))
 
     @staticmethod
     def snapshot(model: Any, normalizer: Any) -> tuple[bytes, bytes | None]:
@@ -219,11 +180,11 @@ class EvalWorker:
 
     def submit(self, snapshot: tuple[bytes, bytes | None]) -> Any:
         """Start an evaluation of ``snapshot``; returns its ``Future``."""
-        return self._pool.submit(_worker_evaluate, snapshot)
+        return self._worker.submit(_worker_evaluate, snapshot)
 
     def close(self, wait: bool = True) -> None:
         """Let the worker finish what it was given (``wait``) or drop it, and reap it."""
-        self._pool.shutdown(wait=True, cancel_futures=not wait)
+        self._worker.close(wait)
 
 
 # env steps of the default config per second are ~1e4 on one core: an interval of 1e4 steps

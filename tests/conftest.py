@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 from collections.abc import Iterator
 from typing import Any
@@ -35,6 +36,26 @@ def central_diff(f, x, h):
     """Fourth-order (five-point) central difference: truncation O(h⁴ f⁽⁵⁾), round-off
     O(eps |f| / h); with the steps used in the tests both are below 1e-8 relative."""
     return (f(x - 2 * h) - 8 * f(x - h) + 8 * f(x + h) - f(x + 2 * h)) / (12.0 * h)
+
+
+def children(pid: int) -> set[int]:
+    """The pids of a process's children (every thread's), from /proc."""
+    out = set()
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out |= {int(c) for c in open(f"/proc/{pid}/task/{task}/children").read().split()}
+        except OSError:  # the thread ended between the listing and the read: no children
+            continue
+    return out
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie has exited)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def default_sigint() -> None:

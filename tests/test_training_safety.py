@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import default_sigint
+from conftest import alive, children, default_sigint
 from stable_baselines3 import PPO
 
 from agents.config import load_config
@@ -372,8 +372,8 @@ def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, mo
 
     def submit_and_kill(self, snap):
         future = submit(self, snap)
-        for proc in list(self._pool._processes.values()):  # the worker, a real process
-            os.kill(proc.pid, signal.SIGKILL)
+        for pid in self._worker.pids():  # the worker, a real process
+            os.kill(pid, signal.SIGKILL)
         return future
 
     monkeypatch.setattr(tr.EvalWorker, "submit", submit_and_kill)
@@ -382,25 +382,6 @@ def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, mo
     err = capsys.readouterr().err
     assert "the evaluation worker stopped" in err and "from the evaluation at step 0 on" in err
     _same_run(run, in_process_run)
-
-
-def _children(pid):
-    """The pids of a process's children (every thread's), from /proc."""
-    out = set()
-    for task in os.listdir(f"/proc/{pid}/task"):
-        try:
-            out |= {int(c) for c in open(f"/proc/{pid}/task/{task}/children").read().split()}
-        except OSError:  # the thread ended between the listing and the read: no children
-            continue
-    return out
-
-
-def _alive(pid):
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
-    except OSError:
-        return False
 
 
 def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
@@ -413,15 +394,15 @@ def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
     while not (run / "eval" / "evaluations.json").is_file():  # the worker has answered once
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
         time.sleep(0.05)
-    kids = _children(proc.pid)
-    assert kids and all(_alive(k) for k in kids)
+    kids = children(proc.pid)
+    assert kids and all(alive(k) for k in kids)
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate()
     deadline = time.monotonic() + 30
-    while any(_alive(k) for k in kids) and time.monotonic() < deadline:
+    while any(alive(k) for k in kids) and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert not any(_alive(k) for k in kids), [open(f"/proc/{k}/cmdline").read() for k in kids
-                                              if _alive(k)]
+    assert not any(alive(k) for k in kids), [open(f"/proc/{k}/cmdline").read() for k in kids
+                                              if alive(k)]
 
 
 def test_the_worker_is_the_default_only_where_it_pays():
