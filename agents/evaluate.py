@@ -317,12 +317,13 @@ class Background:
 
     def result(self) -> Any:
         """Wait for the call, raise its error if it failed, and reap the worker. If the worker
-        died (or could not start), the call runs in this process, and it is said."""
-        from concurrent.futures.process import BrokenProcessPool
+        exited before it answered (it died, or could not start), the call runs in this process,
+        and it is said. A Ctrl-C while waiting stops the worker."""
+        from agents.worker import WorkerStopped
 
         try:
-            return self._call.result()
-        except BrokenProcessPool as e:
+            return self._worker.result(self._call)
+        except WorkerStopped as e:
             print(f"mpa-gym evaluate: the worker of {self._what} stopped ({e}); running "
                   f"{self._what} in this process", file=sys.stderr, flush=True)
         finally:

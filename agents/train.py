@@ -59,6 +59,7 @@ from agents.anchor import RestObservation, rest_for_save
 from agents.config import DEFAULT_CONFIG, ConfigError, TrainConfig, load_config, parse_config
 from agents.evaluate import Job, eval_task, metrics, run_batch
 from agents.policies import LearnedPolicy
+from agents.worker import Worker, WorkerStopped
 from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
@@ -159,18 +160,16 @@ def _worker_evaluate(snapshot: tuple[bytes, bytes | None]) -> list[tuple[dict[st
     return _evaluate_pickled(_WORKER["cfg"], _WORKER["scenarios"], snapshot)
 
 
-class EvalWorker:
-    """A spawned process that runs held-out evaluations while training goes on.
+class EvalWorker(Worker):
+    """A spawned process (``agents.worker.Worker``: it ignores Ctrl-C and exits with the training
+    process, even a SIGKILLed one) that runs held-out evaluations while training goes on.
 
     Each evaluation gets a pickled copy of the policy and its normaliser as they are at the
     evaluation's step (``snapshot``), so its figures are those of an evaluation in the training
-    process, bit for bit (tested). The worker (``agents.worker.Worker``) ignores Ctrl-C and exits
-    with the training process, even a SIGKILLed one."""
+    process, bit for bit (tested)."""
 
     def __init__(self, cfg: TrainConfig) -> None:
-        from agents.worker import Worker
-
-        self._worker = Worker(_worker_init, (cfg,))
+        super().__init__(_worker_init, (cfg,))
 
     @staticmethod
     def snapshot(model: Any, normalizer: Any) -> tuple[bytes, bytes | None]:
@@ -178,13 +177,9 @@ class EvalWorker:
         return (pickle.dumps(model.policy),
                 pickle.dumps(normalizer) if normalizer is not None else None)
 
-    def submit(self, snapshot: tuple[bytes, bytes | None]) -> Any:
+    def evaluate(self, snapshot: tuple[bytes, bytes | None]) -> Any:
         """Start an evaluation of ``snapshot``; returns its ``Future``."""
-        return self._worker.submit(_worker_evaluate, snapshot)
-
-    def close(self, wait: bool = True) -> None:
-        """Let the worker finish what it was given (``wait``) or drop it, and reap it."""
-        self._worker.close(wait)
+        return self.submit(_worker_evaluate, snapshot)
 
 
 # env steps of the default config per second are ~1e4 on one core: an interval of 1e4 steps
@@ -307,20 +302,18 @@ class HeldOutEval(EvalCallback):
                 if norm_bytes is not None:
                     atomic_save(folder / "vecnormalize.pkl", lambda f: f.write(norm_bytes))
         snap = EvalWorker.snapshot(self.model, norm)
-        self._pending = (int(self.num_timesteps), snap, self._worker.submit(snap), saved)
+        self._pending = (int(self.num_timesteps), snap, self._worker.evaluate(snap), saved)
 
     def _collect(self) -> None:
         """Wait for the worker's evaluation under way and record it. If the worker died (or
         could not start: a ``__main__`` a spawned process cannot import), this evaluation and
         the later ones run in the training process, and it is said."""
-        from concurrent.futures.process import BrokenProcessPool
-
         assert self._pending is not None and self._worker is not None
         steps, snap, future, saved = self._pending
         self._pending = None
         try:
-            results = future.result()
-        except BrokenProcessPool as e:
+            results = self._worker.result(future)
+        except WorkerStopped as e:
             _say(f"the evaluation worker stopped ({e}); evaluating in this process from the "
                  f"evaluation at step {steps} on")
             self._worker.close(wait=False)

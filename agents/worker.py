@@ -23,6 +23,7 @@ import signal
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 
@@ -49,6 +50,10 @@ def _ready() -> None:
     """A first task, so that the worker is spawned when the ``Worker`` is made."""
 
 
+class WorkerStopped(Exception):
+    """The worker exited (it died, or could not start) before it answered a call."""
+
+
 class Worker:
     """One spawned worker process; ``initializer(*initargs)`` runs in it before its first call."""
 
@@ -72,23 +77,51 @@ class Worker:
                     signal.signal(s, h)
 
     def submit(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Future[Any]:
-        """Start ``fn(*args, **kwargs)`` in the worker; returns its ``Future``."""
-        return self._pool.submit(fn, *args, **kwargs)
+        """Start ``fn(*args, **kwargs)`` in the worker; returns its ``Future`` (for
+        :meth:`result`), failed at once if the worker has already stopped."""
+        try:
+            return self._pool.submit(fn, *args, **kwargs)
+        except BrokenProcessPool as e:
+            failed: Future[Any] = Future()
+            failed.set_exception(e)
+            return failed
+
+    def result(self, future: Future[Any]) -> Any:
+        """The call's result, or its error. ``WorkerStopped`` if the worker exited before it
+        answered; a Ctrl-C while waiting stops the worker (nobody will wait for it) and goes on."""
+        try:
+            return future.result()
+        except BrokenProcessPool as e:
+            # with a cause the answer came and could not be read (an error that does not
+            # unpickle): the call ran, and running it again is not a fall-back
+            if e.__cause__ is not None:
+                raise
+            raise WorkerStopped(str(e)) from e
+        except KeyboardInterrupt:
+            self.terminate()
+            raise
 
     def pids(self) -> list[int]:
-        """The worker's process id (none before it has started or after it was reaped)."""
-        return [p.pid for p in (self._pool._processes or {}).values()]
+        """The process id of the worker while it runs."""
+        return [p.pid for p in self._processes() if p.exitcode is None]
 
     def close(self, wait: bool = True) -> None:
-        """Let the worker finish what it was given (``wait``) or drop what has not started,
-        and reap it."""
-        self._pool.shutdown(wait=True, cancel_futures=not wait)
+        """Let the worker finish what it was given and reap it (``wait``), or :meth:`terminate`
+        it."""
+        if not wait:
+            self.terminate()
+            return
+        try:
+            self._pool.shutdown(wait=True)
+        except KeyboardInterrupt:  # a Ctrl-C while waiting: nobody waits for it any more
+            self.terminate()
+            raise
 
     def terminate(self) -> None:
-        """Stop the worker now, its call under way too, and reap it (nobody waits for it)."""
-        for pid in self.pids():  # Python 3.14's kill_workers(), before 3.14
-            try:
-                os.kill(pid, signal.SIGKILL)  # it ignores SIGTERM
-            except ProcessLookupError:
-                pass
+        """Stop the worker now, its call under way too, and reap it."""
+        for p in self._processes():  # Python 3.14's kill_workers(), before 3.14
+            p.kill()  # SIGKILL: it ignores SIGTERM; nothing once it has been reaped
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def _processes(self) -> list[Any]:
+        return list((self._pool._processes or {}).values())

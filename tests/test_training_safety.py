@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import alive, children, default_sigint
+from conftest import alive, children, default_sigint, wait_gone
 from stable_baselines3 import PPO
 
 from agents.config import load_config
@@ -368,15 +368,15 @@ def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, mo
     so and evaluates that one and the rest itself; nothing is lost or changed."""
     from agents import train as tr
 
-    submit = tr.EvalWorker.submit
+    evaluate = tr.EvalWorker.evaluate
 
-    def submit_and_kill(self, snap):
-        future = submit(self, snap)
-        for pid in self._worker.pids():  # the worker, a real process
+    def evaluate_and_kill(self, snap):
+        future = evaluate(self, snap)
+        for pid in self.pids():  # the worker, a real process
             os.kill(pid, signal.SIGKILL)
         return future
 
-    monkeypatch.setattr(tr.EvalWorker, "submit", submit_and_kill)
+    monkeypatch.setattr(tr.EvalWorker, "evaluate", evaluate_and_kill)
     run = train(tiny_config(tmp_path, 768, eval_freq=256), tmp_path / "run", progress=False,
                 eval_worker=True)
     err = capsys.readouterr().err
@@ -398,11 +398,8 @@ def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
     assert kids and all(alive(k) for k in kids)
     os.kill(proc.pid, signal.SIGKILL)
     proc.communicate()
-    deadline = time.monotonic() + 30
-    while any(alive(k) for k in kids) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not any(alive(k) for k in kids), [open(f"/proc/{k}/cmdline").read() for k in kids
-                                              if alive(k)]
+    left = wait_gone(kids)
+    assert not left, [open(f"/proc/{k}/cmdline").read() for k in left]
 
 
 def test_the_worker_is_the_default_only_where_it_pays():
