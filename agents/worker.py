@@ -10,9 +10,11 @@ What it guarantees, each tested with real processes and signals:
 - it exits when its parent dies, a SIGKILLed one too (the parent's sentinel: the task queue's
   pipe stays open in the worker itself, so it would otherwise wait for ever);
 - a worker that dies, or cannot start (a ``__main__`` a spawned interpreter cannot import,
-  such as a script read from stdin), fails its calls with ``BrokenProcessPool``: it is a
+  such as a script read from stdin), fails its calls: ``Worker.result`` raises
+  ``WorkerStopped`` and the caller runs the call itself. It is a
   ``concurrent.futures.ProcessPoolExecutor``, where ``multiprocessing.Pool`` would respawn it
-  for ever and its caller would hang.
+  for ever and its caller would hang;
+- a Ctrl-C while the main process waits for it stops it: nobody will use its answer.
 """
 from __future__ import annotations
 
