@@ -315,6 +315,69 @@ def test_domain_randomisation_draws_in_range_and_options_fix_values():
     assert np.array_equal(a, b)
 
 
+# a kick that starts and ends inside control periods, behind a lagging regulator
+KICK = {"kick_force_N": 30.0, "kick_t_s": 0.513, "kick_duration_s": 0.054}
+
+
+def kicked_positions(scenario, n_episodes=1, options=None, stiffness=None):
+    """X after each zero-residual step of ``n_episodes`` episodes (reset between them)."""
+    env = gym.make("MPALegResidual-v0", scenario=scenario, stiffness=stiffness)
+    xs = []
+    for episode in range(n_episodes):
+        env.reset(seed=episode, options=options)
+        done = False
+        while not done:
+            *_, term, trunc, info = env.step(np.zeros(2))
+            xs.append(info["x_m"])
+            done = term or trunc
+    return np.array(xs)
+
+
+@pytest.mark.parametrize("stiffness", [None, ["kmax", "kmin"]])
+def test_a_random_kick_moves_the_leg_as_the_impulse_it_drew(stiffness):
+    # A kick drawn by randomize (ranges of one value) or fixed by reset options is the same
+    # Impulse in `disturbances`: each step gets the impulse's mean force over it. Three
+    # episodes: the kick is timed from each episode's start, whichever design it follows.
+    base = {"name": "kick", "duration_s": 1.5, "plant": {"pressure_lag_s": 0.02}}
+    impulse = {"type": "impulse", "t_s": KICK["kick_t_s"], "force_N": KICK["kick_force_N"],
+               "duration_s": KICK["kick_duration_s"]}
+    ref = kicked_positions({**base, "disturbances": [impulse]}, 3, stiffness=stiffness)
+    drawn = kicked_positions({**base, "randomize": {k: [v, v] for k, v in KICK.items()}}, 3,
+                             stiffness=stiffness)
+    fixed = kicked_positions(base, 3, options={"plant": KICK}, stiffness=stiffness)
+    plain = kicked_positions(base, 3, stiffness=stiffness)
+    # the same arithmetic in the same order but the step's force: rounding differences only
+    assert_allclose(drawn, ref, rtol=0, atol=1e-12)
+    assert_allclose(fixed, ref, rtol=0, atol=1e-12)
+    assert np.max(np.abs(ref - plain)) > 1e-3  # a 1.6 N s kick moves a 3.7 kg leg by mm
+
+
+def test_a_random_kick_left_out_by_p_off_is_no_kick_and_draws_stay_in_range():
+    base = {"name": "kick", "duration_s": 1.5}
+    off = {**base, "randomize": {"kick_force_N": {"range": [20.0, 30.0], "p_off": 1.0},
+                                 "kick_t_s": [0.2, 0.6], "kick_duration_s": [0.05, 0.05]}}
+    assert_allclose(kicked_positions(off), kicked_positions(base), rtol=0, atol=0)
+    on = {**base, "randomize": {"kick_force_N": [20.0, 30.0], "kick_t_s": [0.2, 0.6],
+                                "kick_duration_s": [0.05, 0.05]}}
+    env = gym.make("MPALegResidual-v0", scenario=on)
+    for seed in range(5):
+        env.reset(seed=seed)
+        t0, t1, force = env.unwrapped.engine.kick[0]
+        assert 0.2 <= t0 <= 0.6 and t1 - t0 == pytest.approx(0.05) and 20.0 <= force <= 30.0
+
+
+@pytest.mark.parametrize("randomize, message", [
+    ({"kick_force_N": [0.0, 2e4]}, r"kick_force_N=20000 N is outside the allowed range "
+                                   r"\[-10000, 10000\] N"),
+    ({"kick_duration_s": [-0.1, 0.1]}, r"kick_duration_s=-0.1 s is outside .* \[0, 10\] s"),
+    ({"kick_t_s": {"range": [0.5, 0.2]}}, r"kick_t_s=\[0.5, 0.2\]: low must be <= high"),
+])
+def test_a_bad_random_kick_is_named_with_its_range(randomize, message):
+    with pytest.raises(ScenarioError, match=message):
+        gym.make("MPALegResidual-v0", scenario={"name": "bad", "duration_s": 1.0,
+                                                "randomize": randomize})
+
+
 def test_stiffness_targets_enter_observation_and_reward():
     env = gym.make("MPALegResidual-v0", stiffness="kmax")
     obs, info = env.reset(seed=0)

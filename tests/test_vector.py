@@ -21,7 +21,10 @@ REALISTIC = {
                   # limit, braid and slider friction
                   "pressure_dead_time_s": [0.0, 0.045], "pressure_slew_bar_per_s": [5, 50],
                   "braid_friction_ratio": [0.0, 0.05], "slider_friction_N": [0.0, 2.0],
-                  "slider_viscous_Ns_per_m": [0.0, 5.0]},
+                  "slider_viscous_Ns_per_m": [0.0, 5.0],
+                  # each leg its own random kick, on top of the plan's impulse
+                  "kick_force_N": {"range": [-30.0, 30.0], "p_off": 0.3},
+                  "kick_t_s": [0.1, 0.5], "kick_duration_s": [0.0, 0.08]},
     "disturbances": [{"type": "impulse", "t_s": 0.2, "force_N": 10.0, "duration_s": 0.05}],
 }
 

@@ -162,11 +162,23 @@ INITIAL_OFFSETS: dict[str, tuple[float, float, bool, str]] = {
     "initial_x_offset_m": (-0.05, 0.05, False, "m"),
     "initial_v_offset_mps": (-1.0, 1.0, False, "m/s"),
 }
+# A random kick: an impulse on the hip that an episode draws like a plant field (force, start,
+# length; the ``Impulse`` of ``disturbances`` with drawn values). Leaving ``kick_force_N`` out
+# of a draw (its ``p_off``) leaves the episode without one. Not a plant field: a rig has no
+# such setting (the device emulator plays a scenario's ``plant`` and ``disturbances``).
+KICK_FIELDS: dict[str, tuple[float, float, bool, str]] = {
+    "kick_force_N": (-1e4, 1e4, False, "N"),
+    "kick_t_s": (0.0, 3600.0, False, "s"),
+    "kick_duration_s": (0.0, 10.0, False, "s"),
+}
+# what an episode draws besides the plant: the initial-state offsets and the random kick
+EPISODE_FIELDS = {**INITIAL_OFFSETS, **KICK_FIELDS}
 
 
 def check_plant_value(key: str, value: Any, where: str = "plant") -> float:
-    """Validate one plant (or initial-offset) value against its allowed range."""
-    rng = {**PLANT_RANGES, **INITIAL_OFFSETS}
+    """Validate one plant value (or an episode draw's: initial offset, random kick) against its
+    allowed range."""
+    rng = {**PLANT_RANGES, **EPISODE_FIELDS}
     if key not in rng:
         raise ScenarioError(f"{where}: unknown key {key!r}; allowed keys are {sorted(rng)}")
     lo, hi, lo_open, unit = rng[key]
@@ -180,7 +192,8 @@ def check_plant_value(key: str, value: Any, where: str = "plant") -> float:
 
 @dataclass(frozen=True)
 class Randomization:
-    """Per-episode uniform ranges (low, high) for plant fields and initial-state offsets.
+    """Per-episode uniform ranges (low, high) for plant fields, initial-state offsets and a
+    random kick (``KICK_FIELDS``).
 
     ``p_off`` gives a field a probability of being left out of a draw, so that the episode keeps
     the scenario's ``plant`` value (for a plant effect: off). Uniform draws of a dozen effects
@@ -197,9 +210,9 @@ class Randomization:
             if not (isinstance(entry, tuple | list) and len(entry) == 3):
                 raise ScenarioError(f"randomize: {entry!r} must be a (field, low, high) triple")
             k, lo, hi = entry
-            if k not in RANDOMIZABLE and k not in INITIAL_OFFSETS:
+            if k not in RANDOMIZABLE and k not in EPISODE_FIELDS:
                 raise ScenarioError(f"randomize: unknown key(s) [{k!r}]; allowed keys are "
-                                    f"{sorted({*RANDOMIZABLE, *INITIAL_OFFSETS})}")
+                                    f"{sorted({*RANDOMIZABLE, *EPISODE_FIELDS})}")
             lo = check_plant_value(k, lo, "randomize")
             hi = check_plant_value(k, hi, "randomize")
             if lo > hi:
@@ -265,7 +278,7 @@ class Randomization:
              ) -> dict[str, tuple[float, float]]:
         """The smallest interval of each field's draws: its range, widened to the value the
         episode keeps where ``p_off`` leaves the field out (the scenario's ``plant`` value, the
-        nominal ``params`` where that is unset, 0 for an initial offset)."""
+        nominal ``params`` where that is unset, 0 for an initial offset or a kick)."""
         off = dict(self.p_off)
         nominal = {"mass_kg": params.leg.m, "gamma_Ns_per_m": params.mpa.gamma,
                    "C1_Pa": params.mpa.C1, "C2_Pa": params.mpa.C2,
@@ -411,7 +424,7 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
         plant_d = _section(top.get("plant"), f"{w}: plant", set(PLANT_RANGES))
         plant = Plant(**{k: v for k, v in plant_d.items() if v is not None})
         randomize = Randomization.from_dict(_section(top.get("randomize"), f"{w}: randomize",
-                                                     set(RANDOMIZABLE) | set(INITIAL_OFFSETS)))
+                                                     set(RANDOMIZABLE) | set(EPISODE_FIELDS)))
         duration = _num(top, "duration_s", "scenario", None, low=0.0, low_open=True, high=3600.0,
                         unit="s")
         init = None

@@ -6,8 +6,9 @@ Per step and leg: action → pressure command (direct or feedforward + residual)
 (slew limit, clip to [0, p_max]) → regulator (quantisation, then dead time, slew limit and
 first-order lag solved exactly inside the RK4 steps; a dead time that is not a whole number of
 control periods switches the command inside the period) → plant (Eq. 15 with the braid and
-slider friction, RK4 over one control period) → true stiffness (Eq. 23) → reward,
-termination → sensors (encoder quantum, white noise) → observation.
+slider friction, RK4 over one control period, under the plan's disturbance and the leg's own
+random kick) → true stiffness (Eq. 23) → reward, termination → sensors (encoder quantum, white
+noise) → observation.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numba
 import numpy as np
 
 from mpa_gym.analysis.scenario import (
-    INITIAL_OFFSETS,
+    EPISODE_FIELDS,
     Plant,
     ScenarioError,
     check_plant_value,
@@ -92,8 +93,18 @@ def observe_rows(obs, rows, state, idx, noise, enc, tab, spec):
 
 
 @numba.njit(**JIT)
+def kick_force(kick, j, dt):
+    """The mean over step j (rows of the stacked plan tables, [j dt, (j + 1) dt]) of a kick
+    ``(start, end, force)`` given on the same time axis: the plan's ``f_ext`` rule for an
+    impulse (``task.plan``), so a drawn kick and the same ``Impulse`` in ``disturbances`` agree."""
+    t0 = j * dt
+    overlap = min(t0 + dt, kick[1]) - max(t0, kick[0])
+    return kick[2] * overlap / dt if overlap > 0.0 else 0.0
+
+
+@numba.njit(**JIT)
 def _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
-              obs, out):
+              kick, obs, out):
     """One control period of leg i (see the module docstring)."""
     residual = s[S_RESIDUAL] > 0.0
     j = idx[i]
@@ -121,7 +132,8 @@ def _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, 
     old = (head - n_d - 1) % cap
     X, V, Pe, Pf = fast.plant_step(state[i, ST_X], state[i, ST_V], state[i, ST_PE],
                                    state[i, ST_PF], hist[i, old, 0], hist[i, old, 1],
-                                   hist[i, new, 0], hist[i, new, 1], dead[i, 1], tab[j, T_FEXT],
+                                   hist[i, new, 0], hist[i, new, 1], dead[i, 1],
+                                   tab[j, T_FEXT] + kick_force(kick[i], j, s[S_DT]),
                                    s[S_DT], consts[i], int(s[S_SUB]))
     failed = not (np.isfinite(X) and np.isfinite(V))
     if failed:  # the step left the model's domain: keep the last state, terminate
@@ -146,23 +158,23 @@ def _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, 
 
 
 @numba.njit(**JIT)
-def step_batch(action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec, obs,
-               out):
+def step_batch(action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec, kick,
+               obs, out):
     """One control period for every leg of the batch (actions checked by the env beforehand
     with ``task.contract.check_action``; they are clipped to [−1, 1] here)."""
     for i in range(state.shape[0]):
         _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
-                  obs, out)
+                  kick, obs, out)
 
 
 @numba.njit(parallel=True, **JIT)
 def step_batch_parallel(action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab,
-                        spec, obs, out):
+                        spec, kick, obs, out):
     """``step_batch`` with the legs spread over the cores, for large batches (a thread pool has
     a fixed cost of microseconds per call, which a single leg should not pay)."""
     for i in numba.prange(state.shape[0]):
         _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, s, tab, spec,
-                  obs, out)
+                  kick, obs, out)
 
 
 PARALLEL_MIN_LEGS = 256
@@ -173,21 +185,21 @@ RESET_OPTIONS = ("homing", "initial_state", "plant")  # the keys reset(options=.
 PER_LEG_FIELDS = frozenset({"extra_mass_kg", "mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa",
                             "thickness_m", "pressure_lag_s", "pressure_dead_time_s",
                             "pressure_slew_bar_per_s", "braid_friction_ratio",
-                            "slider_friction_N", "slider_viscous_Ns_per_m", *INITIAL_OFFSETS})
+                            "slider_friction_N", "slider_viscous_Ns_per_m", *EPISODE_FIELDS})
 
 
 def resolve_plant(base: Plant, draws: dict[str, float], fixed: dict[str, Any] | None
-                  ) -> tuple[Plant, float, float]:
+                  ) -> tuple[Plant, dict[str, float]]:
     """The episode's plant: the scenario's, then randomised draws, then ``fixed`` (reset options).
 
-    Returns (plant, initial X offset, initial V offset).
+    Returns (plant, the episode's other draws: every ``EPISODE_FIELDS`` key, 0 where not drawn
+    or fixed: the initial-state offsets and the random kick).
     """
     values = dict(draws)
     for k, v in (fixed or {}).items():
         values[k] = check_plant_value(k, v, "options['plant']")
-    offsets = {k: values.pop(k, 0.0) for k in INITIAL_OFFSETS}
-    return (dataclasses.replace(base, **values), offsets["initial_x_offset_m"],
-            offsets["initial_v_offset_mps"])
+    episode = {k: values.pop(k, 0.0) for k in EPISODE_FIELDS}
+    return dataclasses.replace(base, **values), episode
 
 
 class SimEngine:
@@ -224,6 +236,9 @@ class SimEngine:
         self.dead = np.zeros((n, 2))
         self.hist = np.zeros((n, 2, 2))
         self.head = 0
+        # per leg: its random kick as (start, end, force) on the stacked tables' time axis
+        # (row j starts at j dt), so the kernel needs no notion of plans (``kick_force``)
+        self.kick = np.zeros((n, 3))
         self.plants: list[Plant] = [plan.scenario.plant] * n
         self.obs = np.zeros((n, self.obs_dim))
         self.out = np.zeros((n, len(OUT)))
@@ -292,10 +307,14 @@ class SimEngine:
             fixed_of = [fixed] * self.n
         dx = np.zeros(rows.size)
         dv = np.zeros(rows.size)
+        self.kick[rows] = 0.0
+        t_start = which * self.rows_per_plan * self.cfg.dt_s  # the episodes' t = 0 on that axis
         if per_leg:  # each leg its own plant
             for r, i in enumerate(rows):
-                plant, dx[r], dv[r] = resolve_plant(sc.plant, sc.randomize.sample(rngs[i]),
-                                                    fixed_of[i])
+                plant, ep = resolve_plant(sc.plant, sc.randomize.sample(rngs[i]), fixed_of[i])
+                dx[r], dv[r] = ep["initial_x_offset_m"], ep["initial_v_offset_mps"]
+                t0 = t_start[r] + ep["kick_t_s"]
+                self.kick[i] = (t0, t0 + ep["kick_duration_s"], ep["kick_force_N"])
                 try:
                     self.consts[i] = fast.pack(sc.plant_params(self.params, plant))
                 except ValueError as e:
@@ -415,7 +434,8 @@ class SimEngine:
             self.draw_noise(range(self.n), rngs)
         kernel = step_batch_parallel if self.n >= PARALLEL_MIN_LEGS else step_batch
         kernel(action, self.state, self.prev_cmd, self.idx, self.consts, self.dead, self.hist,
-               self.head, self.noise, self.settings, self.tab, self.spec, self.obs, self.out)
+               self.head, self.noise, self.settings, self.tab, self.spec, self.kick, self.obs,
+               self.out)
         self.head = (self.head + 1) % self.hist.shape[1]
 
     @property
