@@ -16,7 +16,14 @@ tracking error e = X̂ − X for the two ways a destabilised loop shows itself:
   lag), which cancels in the difference; an oscillation at another frequency does not (for an
   aperiodic part r of RMS ρ, e_t − e_{t−T} has RMS ≈ √2 ρ). This is the robustness sweep's
   "unstable" criterion (``agents.robustness``) made causal. The first two periods are left out
-  because the difference would compare the settled loop with its start-up transient.
+  because the difference would compare the settled loop with its start-up transient. With
+  ``aperiodic_clip_mm`` c each sample of e_t − e_{t−T} is clipped to ±c before it is squared
+  (winsorised): a kick's transient, centimetres for a few tenths of a second (and seen again
+  one period later), then adds at most c² for its length to a mean over seconds, while an
+  oscillation whose change stays within ±c is measured exactly as without the clip, and a
+  larger one still reaches c² ≥ the level². Without it, the one statistic could not tell a
+  kick the policy recovers from in 0.4 s from a limit cycle, and a 30 N kick on a heavy leg
+  handed the loop to the fallback for good.
 
 Once either level is crossed, the fallback drives the rest of the episode (the latch never hands
 back: a residual that destabilised this plant once does it again). A feedback fallback can fail
@@ -99,6 +106,7 @@ class SupervisorSpec:
     error_window_s: float = 0.5  # [s] time constant of that running mean
     aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
     aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
+    aperiodic_clip_mm: float | None = None  # [mm] e_t − e_{t−T} clipped to ± this (None: not)
     last_resort: str | None = None  # "ff": the feedforward alone once the fallback trips too
 
     def __post_init__(self) -> None:
@@ -111,6 +119,9 @@ class SupervisorSpec:
                               ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
             check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
                         unit=unit)
+        if self.aperiodic_clip_mm is not None:  # below the level, the monitor could never trip
+            check_range("supervisor.aperiodic_clip_mm", self.aperiodic_clip_mm,
+                        self.aperiodic_mm, 100.0, low_open=True, unit="mm")
 
     @classmethod
     def from_config(cls, value: Any) -> SupervisorSpec:
@@ -128,8 +139,10 @@ class SupervisorSpec:
     def describe(self) -> str:
         out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
                f"exceeds {self.error_mm:g} mm or, from the third period on, the RMS of its "
-               f"change over one period (over {self.aperiodic_window_s:g} s) exceeds "
-               f"{self.aperiodic_mm:g} mm")
+               f"change over one period (over {self.aperiodic_window_s:g} s"
+               + (f", each sample clipped to ±{self.aperiodic_clip_mm:g} mm"
+                  if self.aperiodic_clip_mm is not None else "")
+               + f") exceeds {self.aperiodic_mm:g} mm")
         if self.last_resort:
             out += (f"; {self.last_resort} alone once {self.fallback}'s loop, given one period "
                     f"to settle, passes {self.error_mm:g} mm too")
@@ -154,6 +167,7 @@ class Supervised:
         self.n_period = max(1, round(period_s / dt))
         self.a_err = dt / (spec.error_window_s + dt)
         self.a_ap = dt / (spec.aperiodic_window_s + dt)
+        self.clip = np.inf if spec.aperiodic_clip_mm is None else spec.aperiodic_clip_mm * 1e-3
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -173,7 +187,8 @@ class Supervised:
         past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
         mon[:, M_ERR] += self.a_err * (e**2 - mon[:, M_ERR])
         armed = k - mon[:, M_SINCE] >= ARM_PERIODS * N  # two periods into the stage
-        mon[:, M_AP] += np.where(armed, self.a_ap * ((e - past) ** 2 - mon[:, M_AP]), 0.0)
+        change = np.clip(e - past, -self.clip, self.clip)
+        mon[:, M_AP] += np.where(armed, self.a_ap * (change**2 - mon[:, M_AP]), 0.0)
         mon[np.arange(n), slot] = e
         # the fallback's loop is judged on divergence alone: after a hand-over it settles from
         # the policy's oscillation, slowly where it is near its own margin (module docstring)

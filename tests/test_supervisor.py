@@ -75,6 +75,35 @@ def test_monitor_trips_on_an_aperiodic_oscillation_and_not_on_a_periodic_error()
     assert np.all(drove[round(first[1] / DT):, 1])  # the latch never hands back
 
 
+def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillations():
+    # aperiodic_mm 2 mm, each sample of e_t − e_{t−T} clipped to ±3 mm. Row 0: a kick at 7 s
+    # (armed from 6 s), an error of 20 mm decaying with 0.1 s: ∫e² dt = 20 mm² s, so the
+    # unclipped running mean (3 s) jumps to ~6.7 mm² > (2 mm)² and trips; clipped, the pulse
+    # adds at most 9 mm² × 0.19 s (while it is above 3 mm) + 0.45 mm² s of its tail, ~0.7 mm²
+    # and ~1 mm² once the change sees it again a period later: < 4 mm², no trip. Row 1: an
+    # oscillation whose change has RMS 2.1 mm and peaks at 2.97 mm < 3 mm: the clip changes no
+    # sample, so both trip at the same step. Row 2: the 6 mm-RMS change of the first test
+    # (peaks 8.5 mm): clipped it still averages ~7.5 mm² > 4 mm², and trips.
+    t = DT * np.arange(round(5 * T / DT))
+    after = np.clip(t - 7.0, 0.0, None)
+    kick = np.where(t >= 7.0, 0.020 * np.exp(-after / 0.1), 0.0)
+    f = 21.5 / T  # cycles per period: e_t − e_{t−T} = 2 × the oscillation
+    small = 0.00297 / 2 * np.sin(2 * np.pi * f * t)
+    big = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * f * t)
+    errors = np.stack([kick, small, big], axis=1)
+    drove = {clip: _drive(Supervised(Constant(0.0), Constant(1.0), DT, T,
+                                     SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=clip)),
+                          errors) > 0.5 for clip in (None, 3.0)}
+    first = {clip: [np.flatnonzero(d[:, r])[0] if d[:, r].any() else None for r in range(3)]
+             for clip, d in drove.items()}
+    assert first[None][0] is not None and first[3.0][0] is None
+    assert first[3.0][1] is not None and first[3.0][1] == first[None][1]
+    assert first[3.0][2] is not None and first[3.0][2] >= first[None][2]
+    with pytest.raises(ValueError, match=r"aperiodic_clip_mm=1.5 mm is outside the allowed "
+                                         r"range \(2, 100\] mm"):
+        SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
+
+
 def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
     # A 20 mm step at 1 s that the fallback does not remove (a fallback that cannot hold this
     # plant): the error monitor trips at 1.41 s (previous test) and hands over to the
