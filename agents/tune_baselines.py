@@ -36,7 +36,7 @@ import numpy as np
 from agents.baselines import make_baseline
 from agents.config import DEFAULT_CONFIG, load_config
 from agents.robustness import cell_metrics, run_batch
-from mpa_gym.analysis.scenario import Randomization, Scenario, load_scenario
+from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
 
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
 # The undamped twin of a plant (module docstring): field -> "low" (the low end of its range) or
@@ -64,7 +64,8 @@ def training_plants(config: str | Path = DEFAULT_CONFIG, n_plants: int = 16, see
     Every effect is on in every draw (a range's ``p_off`` is ignored): ``p_off`` gives the
     residual's training one-effect plants to learn from, while gains are fielded on a rig that
     has all the effects at once. Tuned on draws with half the dead times off, the pid's gains
-    doubled and went unstable from 20 ms of dead time on the unloaded leg."""
+    doubled and went unstable from 20 ms of dead time on the unloaded leg. The random kick is
+    left out (``every_effect``)."""
     sc = load_scenario(load_config(config).env_kwargs["scenario"])
     rng = np.random.default_rng(seed)
     every = every_effect(sc.randomize)
@@ -77,8 +78,12 @@ def training_plants(config: str | Path = DEFAULT_CONFIG, n_plants: int = 16, see
 
 
 def every_effect(randomize: Randomization) -> Randomization:
-    """``randomize`` with every field drawn in every draw (its ``p_off`` left out)."""
-    return dataclasses.replace(randomize, p_off=())
+    """``randomize`` with every field drawn in every draw (its ``p_off`` left out), less the
+    random kick (``KICK_FIELDS``): a disturbance of the residual's training episodes, not an
+    effect of the rig the gains are fielded on, and over before the objective's window (the
+    last three periods) opens. Left out, the draws are those of a config without kicks, which
+    the committed gains were tuned on."""
+    return Randomization(tuple(r for r in randomize.ranges if r[0] not in KICK_FIELDS))
 
 
 def undamped(plant: dict[str, float], ranges: dict[str, tuple[float, float]]

@@ -294,6 +294,7 @@ def test_tuning_runs_on_the_training_plants_and_says_so():
     assert r["mean_position_rmse_mm"] <= r["default_mean_position_rmse_mm"]
     assert set(r["gains"]) == {"kp_bar_per_m", "ki_bar_per_m_s", "kd_bar_s_per_m", "tf_s"}
     assert r["tuned_on"]["randomize"]["pressure_dead_time_s"] == [0.0, 0.03]
+    assert not {"kick_force_N", "kick_t_s", "kick_duration_s"} & set(r["tuned_on"]["randomize"])
     sc, plants = training_plants(n_plants=2, episode_s=9.0)
     # two draws, then their undamped twins: the same plant, the leg's damping at the low end
     # of its range, friction and the regulator's rate limit off
