@@ -6,7 +6,8 @@ same deterministic action from the exported weights in one compiled (numba) call
 allocated once: the tracking-error features and their integrals (``TrackingErrorObservation``),
 the observation normaliser (VecNormalize's running mean and variance, its clip), the policy MLP
 (SB3's ``mlp_extractor.policy_net`` then ``action_net``: the mean action, ``deterministic=True``),
-the clip to the action space, and the force–stiffness map (``ForceStiffnessAction``). Single
+the clip to the action space, and the force–stiffness map (``ForceStiffnessAction``) with its
+stiffness estimator. Single
 threaded, no framework, no allocation per step: what a real-time loop can afford.
 
 It is equal to ``LearnedPolicy.predict`` (SB3's deterministic action) to 1e-6
@@ -21,7 +22,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from agents.wrappers import FeatureSpec, _constants
+from agents.wrappers import ADAPT_STATE, FeatureSpec, _adapt_row, _constants
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.contract import OBS_COS as OCOS
@@ -132,10 +133,10 @@ def _mlp(x, n_in, weights, shapes, offsets, act, h_a, h_b, out):
 
 
 @numba.njit(**JIT)
-def _forward(raw, integ, prev, fresh, spec_i, spec_f, mean, inv_std, clip_obs, weights, shapes,
-             offsets, act, a_low, a_high, fs, consts, basis, feat, h_a, h_b, out):
-    """One action (module docstring) into ``out``; the state (integrals, previous action) is
-    updated in place."""
+def _forward(raw, integ, prev, adapt, fresh, spec_i, spec_f, mean, inv_std, clip_obs, weights,
+             shapes, offsets, act, a_low, a_high, fs, consts, basis, feat, h_a, h_b, out):
+    """One action (module docstring) into ``out``; the state (integrals, previous action,
+    stiffness estimator) is updated in place."""
     n = _features(raw, integ, prev, fresh, spec_i[5] > 0, spec_i[0] > 0, spec_i[1] > 0,
                   spec_i[2] > 0, spec_f[0], spec_i[3] > 0, spec_i[4], spec_f[1], spec_f[2],
                   basis, feat)
@@ -147,6 +148,11 @@ def _forward(raw, integ, prev, fresh, spec_i, spec_f, mean, inv_std, clip_obs, w
     if fs[0] > 0.0:  # ForceStiffnessAction: (a_F, a_k) → residual (a_e, a_f) on the nominal model
         x = raw[OXR]
         k_ref = raw[OK] * OBS_KREF_SCALE
+        if fs[4] > 0.0:  # its stiffness estimator replaces a_k
+            if fresh:
+                adapt[6] = 0.0
+            out[1] = _adapt_row(adapt, x, x - raw[OX], k_ref, spec_f[2], fs[4], fs[2])
+            adapt[5] = min(max(out[0], -1.0), 1.0) * fs[1]
         F0, k0 = fast.force_and_stiffness(x, 0.0, 0.0, 0.0, consts)
         Fe, ke = fast.force_and_stiffness(x, 0.0, BAR, 0.0, consts)
         Ff, kf = fast.force_and_stiffness(x, 0.0, 0.0, BAR, consts)
@@ -174,7 +180,8 @@ class DeployedPolicy:
                  normalizer: tuple[np.ndarray, np.ndarray, float, float] | None = None,
                  dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
                  action_low: np.ndarray | None = None, action_high: np.ndarray | None = None,
-                 params: Params = DEFAULT_PARAMS) -> None:
+                 params: Params = DEFAULT_PARAMS, stiffness_adapt_s: float | None = None
+                 ) -> None:
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation={activation!r} must be one of {sorted(ACTIVATIONS)}")
         spec = features
@@ -213,14 +220,19 @@ class DeployedPolicy:
                                                                                   float)
         self._high = np.full(n_act, np.inf) if action_high is None else np.asarray(action_high,
                                                                                    float)
-        self._fs = np.zeros(4) if force_stiffness is None else np.array(
-            [1.0, force_stiffness[0], force_stiffness[1], force_stiffness[2] * BAR])
+        if stiffness_adapt_s is not None and force_stiffness is None:
+            raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
+                             "the stiffness coordinate of ForceStiffnessAction)")
+        self._fs = np.zeros(5) if force_stiffness is None else np.array(
+            [1.0, force_stiffness[0], force_stiffness[1], force_stiffness[2] * BAR,
+             stiffness_adapt_s or 0.0])
         self._consts = _constants(params)
         # buffers, allocated once
         m = 1 if spec is None else spec.n_integrals
         self._raw = np.zeros(obs_dim)
         self._integ = np.zeros(m)
         self._prev = np.zeros(2)
+        self._adapt = np.zeros(ADAPT_STATE)
         self._basis = np.zeros(m)
         self._feat = np.zeros(n_feat + obs_dim + 8)
         self._h_a, self._h_b = np.zeros(width), np.zeros(width)
@@ -267,7 +279,8 @@ class DeployedPolicy:
             norm = (nz.obs_rms.mean, nz.obs_rms.var, float(nz.epsilon), float(nz.clip_obs))
         space = policy.model.action_space
         return cls(layers, activation, obs_dim, policy.features, norm, policy.dt,
-                   policy.force_stiffness, space.low, space.high, params)
+                   policy.force_stiffness, space.low, space.high, params,
+                   policy.stiffness_adapt_s)
 
     def reset(self) -> None:
         """The next observation starts an episode (integrals and previous action at zero)."""
@@ -276,7 +289,7 @@ class DeployedPolicy:
     def act(self, observation: np.ndarray, episode_start: bool = False) -> np.ndarray:
         """The action for one observation (a buffer the next call overwrites)."""
         self._raw[:] = observation
-        _forward(self._raw, self._integ, self._prev, self._fresh or episode_start,
+        _forward(self._raw, self._integ, self._prev, self._adapt, self._fresh or episode_start,
                  self._spec_i, self._spec_f, self._mean, self._inv_std, self._clip,
                  self._weights, self._shapes, self._offsets, self._act, self._low, self._high,
                  self._fs, self._consts, self._basis, self._feat, self._h_a, self._h_b,

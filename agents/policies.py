@@ -13,8 +13,10 @@ import numpy as np
 from agents.baselines import BASELINES, Policy, make_baseline
 from agents.config import TrainConfig
 from agents.wrappers import (
+    ADAPT_STATE,
     ActionSpec,
     FeatureSpec,
+    adapt_stiffness,
     force_stiffness_to_residual,
     integral_step,
 )
@@ -30,14 +32,20 @@ class LearnedPolicy:
     their integrals and the previous action are the returned state), normalises with the
     training statistics, and returns the deterministic action — mapped from force–stiffness
     coordinates to the env's residual action when the model was trained with
-    ``ForceStiffnessAction`` (``force_stiffness`` = (force_N, stiffness_rel, residual scale)).
+    ``ForceStiffnessAction`` (``force_stiffness`` = (force_N, stiffness_rel, residual scale)),
+    with its stiffness estimator if it had one (``stiffness_adapt_s``; its state is part of the
+    returned state).
     """
 
     def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
-                 dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None
-                 ) -> None:
+                 dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
+                 stiffness_adapt_s: float | None = None) -> None:
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
+        if stiffness_adapt_s is not None and force_stiffness is None:
+            raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
+                             "the stiffness coordinate of ForceStiffnessAction)")
+        self.stiffness_adapt_s = stiffness_adapt_s
 
     def _mean_action(self, obs: np.ndarray) -> np.ndarray:
         """SB3's deterministic action, ``model.predict(obs, deterministic=True)``, by the same
@@ -67,39 +75,50 @@ class LearnedPolicy:
         """The policy for a model trained with ``cfg``'s wrappers and task."""
         task_cfg = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {})
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
-        fs = None
+        fs, tau = None, None
         if aw is not None:
             spec = ActionSpec(**aw)
             fs = (spec.force_N, spec.stiffness_rel, task_cfg.residual_scale_bar)
+            tau = spec.stiffness_adapt_s
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
-                   task_cfg.dt_s, fs)
+                   task_cfg.dt_s, fs, tau)
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
                 ) -> tuple[np.ndarray, Any]:
         """Actions for one observation or a batch; ``state`` (returned, passed back on the next
-        call) holds each row's integrals and previous action, reset where ``episode_start``."""
+        call) holds each row's integrals, previous action and stiffness estimator, reset where
+        ``episode_start``."""
         raw = np.asarray(observation, dtype=np.float32)
         single = raw.ndim == 1
         raw = raw.reshape(1, -1) if single else raw
-        obs, spec = raw, self.features
-        if spec is not None:
-            n, m = raw.shape[0], spec.n_integrals
-            st = np.zeros((n, m + 2)) if state is None else np.array(state, float).reshape(n, -1)
-            if state is not None:
+        obs, spec, tau = raw, self.features, self.stiffness_adapt_s
+        n, m = raw.shape[0], (spec.n_integrals if spec is not None else 0)
+        st = None
+        if spec is not None or tau is not None:  # [integrals | previous action | estimator]
+            width = m + 2 + (ADAPT_STATE if tau is not None else 0)
+            st = np.zeros((n, width)) if state is None else np.array(state, float).reshape(n, -1)
+            if spec is not None and state is not None:
                 st[:, :m] = integral_step(st[:, :m], raw, self.dt, spec.limit_m_s)
             if episode_start is not None:
                 st[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
-            obs, state = spec.features(raw, st[:, :m], st[:, m:]), st
+        if spec is not None:
+            obs = spec.features(raw, st[:, :m], st[:, m:m + 2])
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action = (self._mean_action(obs) if deterministic
                   else self.model.predict(obs, deterministic=False)[0])
         if self.force_stiffness is not None:
+            if tau is not None:
+                force_N, stiffness_rel, _ = self.force_stiffness
+                adapt = st[:, m + 2:].copy()
+                action = adapt_stiffness(action, raw, adapt, self.dt, tau, stiffness_rel,
+                                         force_N)
+                st[:, m + 2:] = adapt
             action = force_stiffness_to_residual(action, raw, *self.force_stiffness)
-        if spec is not None:
-            state[:, spec.n_integrals:] = np.clip(action, -1.0, 1.0)  # what the env applies
-        return (action[0] if single else action), state
+        if st is not None:
+            st[:, m:m + 2] = np.clip(action, -1.0, 1.0)  # what the env applies
+        return (action[0] if single else action), (st if st is not None else state)
 
 
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False

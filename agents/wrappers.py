@@ -44,6 +44,18 @@ correction alone leaves the nominal stiffness at k̂ — the redundancy the pape
 action-rate term of legged-robot RL, against high-frequency corrections that a lagging regulator
 turns into a limit cycle; it shapes training only, so a trained policy runs without it.
 
+``stiffness_adapt_s`` τ replaces the policy's a_k by an estimate. On a plant whose muscles are
+not the model's (bladder C1, C2, thickness), a force correction that tracks X̂ has to cancel
+the plant's force deficit along the motion. Its slope against X̂ is then the stiffness excess
+k − k̂ at the applied pressures, less Δm ω² for a mass error (4.4 N/m per kg at the 3 s
+period; k̂ is ~545 N/m). The estimator low-passes (time constant τ) the means of X̂ and of the
+applied ΔF, their covariance c and X̂'s variance v. It low-passes the slope c / (v + v₀) once
+more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiffness_rel`` k̂).
+Each update's weight is 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
+moves it. Off the training plants, a_k learned from the error features went the wrong way on
+some plants; the estimate needs no learning. It is a controller's computation from its own
+commands and the reference, like the features, never a plant parameter.
+
 Single-env wrappers are what an rl-zoo config names as ``env_wrapper``; the ``…Vector…`` ones wrap
 the native vector env (same-step autoreset). Both use the module's functions, so they agree.
 """
@@ -161,8 +173,17 @@ class ActionSpec:
     force_N: float = 20.0  # [N] ground-force correction ΔF at a_F = ±1
     stiffness_rel: float = 0.3  # [-] stiffness correction Δk at a_k = ±1, as a share of k̂
     rate_penalty: float = 0.0  # weight of |a_t − a_{t−1}|² taken off the training reward
+    # [s] time constant of the stiffness estimator whose a_k replaces the policy's (module
+    # docs); None: the policy's own a_k
+    stiffness_adapt_s: float | None = None
 
     def __post_init__(self) -> None:
+        tau = self.stiffness_adapt_s
+        if tau is not None:
+            if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0 < tau <= 60:
+                raise ValueError(f"stiffness_adapt_s={tau!r} must be null or a number in "
+                                 "(0, 60] s")
+            object.__setattr__(self, "stiffness_adapt_s", float(tau))
         for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
                              ("rate_penalty", 0.0, 100.0)):
             value = getattr(self, name)
@@ -283,6 +304,58 @@ def _force_stiffness_kernel(a, x_ref, k_ref, force_N, stiffness_rel, scale_pa, c
         out[i, 1] = min(max((j11 * dk - j21 * dF) / det / scale_pa, -1.0), 1.0)
 
 
+# The stiffness estimator (ActionSpec.stiffness_adapt_s; module docs)
+ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a start's or a
+#                       kick's transient says nothing about the plant's stiffness
+ADAPT_VAR_M2 = 1e-5  # [m²] regulariser of X̂'s variance, (3.2 mm)², a twentieth of the 20 mm
+#                      reference's A²/2: a reference that barely moves gives no estimate
+ADAPT_STATE = 7  # an estimator's state: means of X̂ and ΔF, their covariance, X̂'s variance,
+#                  the slope, the last ΔF applied, started (0 until its first observation)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _adapt_row(s, x_ref, e, k_ref, dt, tau, stiffness_rel):
+    """One step of one row's stiffness estimator (state ``s`` updated in place) → its a_k."""
+    if s[6] == 0.0:
+        for j in range(6):
+            s[j] = 0.0
+        s[0], s[6] = x_ref, 1.0
+    al = dt / tau / (1.0 + (e / ADAPT_ERROR_M) ** 2)
+    s[0] += al * (x_ref - s[0])
+    s[1] += al * (s[5] - s[1])
+    dx, dF = x_ref - s[0], s[5] - s[1]
+    s[2] += al * (dF * dx - s[2])
+    s[3] += al * (dx * dx - s[3])
+    span = stiffness_rel * abs(k_ref)
+    if span <= 0.0:
+        return 0.0
+    s[4] += al * (min(max(s[2] / (s[3] + ADAPT_VAR_M2), -span), span) - s[4])
+    return min(max(-s[4] / span, -1.0), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _adapt_kernel(a, x_ref, x, k_ref, state, dt, tau, stiffness_rel, force_N, out):
+    for i in range(a.shape[0]):
+        out[i, 0] = a[i, 0]
+        out[i, 1] = _adapt_row(state[i], x_ref[i], x_ref[i] - x[i], k_ref[i], dt, tau,
+                               stiffness_rel)
+        state[i, 5] = min(max(a[i, 0], -1.0), 1.0) * force_N
+
+
+def adapt_stiffness(action: np.ndarray, obs: np.ndarray, state: np.ndarray, dt: float,
+                    tau: float, stiffness_rel: float, force_N: float) -> np.ndarray:
+    """(n, 2) (a_F, a_k) → (a_F, â_k): the stiffness output replaced by the estimator's for
+    the observations ``obs`` (n, d), each row's state (n, ``ADAPT_STATE``, zeros at an
+    episode's start) updated in place; ``tau`` its time constant [s] (module docs)."""
+    a = np.asarray(action, dtype=np.float64).reshape(-1, 2)
+    out = np.empty_like(a)
+    _adapt_kernel(a, np.asarray(obs[:, OXR], dtype=np.float64),
+                  np.asarray(obs[:, OX], dtype=np.float64),
+                  np.asarray(obs[:, OK], dtype=np.float64) * OBS_KREF_SCALE, state,
+                  float(dt), float(tau), float(stiffness_rel), float(force_N), out)
+    return out
+
+
 def force_stiffness_to_residual(action: np.ndarray, obs: np.ndarray, force_N: float,
                                 stiffness_rel: float, scale_bar: float,
                                 params: Params = DEFAULT_PARAMS) -> np.ndarray:
@@ -334,11 +407,14 @@ class _ForceStiffnessMap:
                              "directly, or the env itself")
         self._obs = None
         self._prev = np.zeros((n, 2))
+        self.dt = float(env.unwrapped.cfg.dt_s)
+        self._adapt = np.zeros((n, ADAPT_STATE))  # the stiffness estimators, one per env
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self._obs = self._env_obs(obs)
         self._prev[:] = 0.0
+        self._adapt[:] = 0.0
         return obs, info
 
     def _env_obs(self, obs: Any) -> np.ndarray:
@@ -357,8 +433,13 @@ class _ForceStiffnessMap:
         """(n, 2) validated (a_F, a_k) → the residual action for the last observation."""
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
-        return force_stiffness_to_residual(a, self._obs.reshape(a.shape[0], -1), self.force_N,
-                                           self.stiffness_rel, self.scale_bar)
+        obs = self._obs.reshape(a.shape[0], -1)
+        tau = self.action_spec.stiffness_adapt_s
+        if tau is not None:
+            a = adapt_stiffness(a, obs, self._adapt, self.dt, tau, self.stiffness_rel,
+                                self.force_N)
+        return force_stiffness_to_residual(a, obs, self.force_N, self.stiffness_rel,
+                                           self.scale_bar)
 
 
 class ForceStiffnessAction(_ForceStiffnessMap, gym.Wrapper):
@@ -393,6 +474,7 @@ class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
         residual = self._residual(a)
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = self._env_obs(obs)  # same-step autoreset: a new episode's first observation
+        self._adapt[np.logical_or(te, tr)] = 0.0
         if self.rate_penalty:
             r = r - self._rate_cost(a, np.logical_or(te, tr))
         return obs, r, te, tr, info

@@ -62,7 +62,8 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     assert err < ATOL, err
 
 
-def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=True, seed=0):
+def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=True, seed=0,
+               adapt_s=None):
     """A LearnedPolicy around a freshly initialised PPO (random weights) and a normaliser with
     made-up statistics, for the branches the default config does not take."""
     from stable_baselines3 import PPO
@@ -76,7 +77,8 @@ def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=
             env = TrackingErrorObservation(env, **features)
         if force_stiffness is not None:
             env = ForceStiffnessAction(env, force_N=force_stiffness[0],
-                                       stiffness_rel=force_stiffness[1])
+                                       stiffness_rel=force_stiffness[1],
+                                       stiffness_adapt_s=adapt_s)
         return env
 
     venv = DummyVecEnv([make])
@@ -92,26 +94,34 @@ def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=
     model = PPO("MlpPolicy", venv, policy_kwargs={**policy_kwargs, "ortho_init": False},
                 seed=seed, device="cpu")
     fs = None if force_stiffness is None else (*force_stiffness, 1.0)
-    return LearnedPolicy(model, norm, FeatureSpec(**features) if features else None, 0.01, fs)
+    return LearnedPolicy(model, norm, FeatureSpec(**features) if features else None, 0.01, fs,
+                         adapt_s)
 
 
-@pytest.mark.parametrize("env_id,features,policy_kwargs,fs,normalize", [
-    ("MPALeg-v0", None, {"net_arch": [32, 32, 16]}, None, True),
+@pytest.mark.parametrize("env_id,features,policy_kwargs,fs,normalize,adapt_s", [
+    ("MPALeg-v0", None, {"net_arch": [32, 32, 16]}, None, True, None),
     ("MPALeg-v0", {"harmonics": 2, "previous_action": True, "mask_pressures": True},
-     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ReLU}, None, False),
+     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ReLU}, None, False, None),
     ("MPALegResidual-v0", {"harmonics": 1, "fine_error_m": 0.001, "remodulate": True},
-     {"net_arch": [16]}, None, True),
+     {"net_arch": [16]}, None, True, None),
     ("MPALegResidual-v0", {"errors_only": True, "harmonics": 2, "remodulate": True,
                            "previous_action": True},
-     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ELU}, (20.0, 0.3), True),
+     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ELU}, (20.0, 0.3), True,
+     None),
+    # the stiffness estimator, with a time constant short enough to move within the episode
+    ("MPALegResidual-v0", {"errors_only": True, "harmonics": 1, "previous_action": True},
+     {"net_arch": [32]}, (20.0, 0.3), True, 0.2),
 ])
 def test_deployed_path_covers_every_feature_and_layer_option(env_id, features, policy_kwargs,
-                                                             fs, normalize):
-    sb3 = _untrained(env_id, features, policy_kwargs, fs, normalize)
+                                                             fs, normalize, adapt_s):
+    sb3 = _untrained(env_id, features, policy_kwargs, fs, normalize, adapt_s=adapt_s)
     deployed = DeployedPolicy.from_learned(sb3, 9 if env_id == "MPALegResidual-v0" else 8)
     err, moved = compare(sb3, deployed, gym.make(env_id, task={"episode_s": 3.0}))
     assert moved > 1e-2  # the actions are not trivially zero
     assert err < ATOL, err
+    if adapt_s is not None:  # the estimator acted: the same weights without it act otherwise
+        plain = _untrained(env_id, features, policy_kwargs, fs, normalize, adapt_s=None)
+        assert compare(sb3, plain, gym.make(env_id, task={"episode_s": 3.0}))[0] > 1e-3
 
 
 def test_deployed_policy_refuses_a_wrong_observation(tiny_run):

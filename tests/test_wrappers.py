@@ -10,11 +10,14 @@ import pytest
 
 import mpa_gym  # noqa: F401  (registers the env ids)
 from agents.wrappers import (
+    ADAPT_STATE,
+    ADAPT_VAR_M2,
     FeatureSpec,
     ForceStiffnessAction,
     ForceStiffnessVectorAction,
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
+    adapt_stiffness,
     force_stiffness_to_residual,
     harmonic_basis,
     integral_step,
@@ -149,21 +152,22 @@ def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
 
 
 @pytest.mark.parametrize(
-    ("harmonics", "previous_action", "mask", "fine", "errors_only", "remod"),
-    [(0, False, False, None, False, False), (1, True, False, None, False, False),
-     (2, True, True, 1e-3, False, True), (0, False, True, 5e-4, False, False),
-     (1, True, False, 5e-4, True, True)])
+    ("harmonics", "previous_action", "mask", "fine", "errors_only", "remod", "adapt"),
+    [(0, False, False, None, False, False, None), (1, True, False, None, False, False, None),
+     (2, True, True, 1e-3, False, True, None), (0, False, True, 5e-4, False, False, None),
+     (1, True, False, 5e-4, True, True, None), (1, True, False, None, True, True, 0.05)])
 def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine, errors_only,
-                                          remod):
-    # observation features and action coordinates, across a same-step autoreset
+                                          remod, adapt):
+    # observation features and action coordinates (with the stiffness estimator: its state
+    # restarts with each episode), across a same-step autoreset
     kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
     feats = {"harmonics": harmonics, "previous_action": previous_action, "mask_pressures": mask,
              "fine_error_m": fine, "errors_only": errors_only, "remodulate": remod}
     single = ForceStiffnessAction(TrackingErrorObservation(
-        gym.make("MPALegResidual-v0", **kw), **feats))
+        gym.make("MPALegResidual-v0", **kw), **feats), stiffness_adapt_s=adapt)
     vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
         "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
-        **feats))
+        **feats), stiffness_adapt_s=adapt)
     m = 1 + 2 * harmonics
     b = 0 if errors_only else 9  # the env's observation, or nothing of it
     r = 2 * harmonics if remod else 0  # R_h, Q_h last
@@ -188,7 +192,10 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
         if not errors_only:
             assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
         if previous_action:  # the residual the env applied, in its action units
-            np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
+            if adapt is None:
+                np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
+            else:  # a_k is the estimator's, not the one given
+                assert np.any(so[b + 2 + m:b + 4 + m] != applied)
         if fine:  # the error again, clipped to ±fine
             assert so[d - r - 1] == np.float32(np.clip(e, -fine, fine))
         if te or tr:
@@ -230,3 +237,61 @@ def test_rate_penalty_charges_the_action_change_and_restarts_each_episode():
             prev = np.zeros(2)
     with pytest.raises(ValueError, match=r"rate_penalty=-1 must be a number in \[0, 100\]"):
         ForceStiffnessAction(gym.make("MPALegResidual-v0"), rate_penalty=-1)
+
+
+def _estimate(slope, t_end, kick=None, tau=3.0, k_ref=545.0):
+    """â_k of the stiffness estimator fed ΔF = slope·(X̂ − x0) + 5 N along the 20 mm, 3 s
+    reference (exact tracking), and its state; ``kick`` = (t0, t1, e): from t0 to t1 the
+    tracking error is e and ΔF swings ±20 N at 5 Hz."""
+    dt, w = 0.01, 2 * np.pi / 3.0
+    obs = np.zeros((1, 9))
+    obs[0, 8] = k_ref / 1000.0  # k̂ [kN/m]
+    state = np.zeros((1, ADAPT_STATE))
+    a_k = 0.0
+    for i in range(round(t_end / dt)):
+        t = i * dt
+        x_ref = 0.8 + 0.02 * np.sin(w * t)
+        obs[0, 2], obs[0, 0] = x_ref, x_ref
+        dF = slope * (x_ref - 0.8) + 5.0
+        if kick is not None and kick[0] <= t < kick[1]:
+            obs[0, 0] = x_ref - kick[2]
+            dF = 20.0 * np.sign(np.sin(2 * np.pi * 5.0 * t))
+        a_k = adapt_stiffness(np.array([[dF / 20.0, 0.7]]), obs, state, dt, tau, 0.3, 20.0)[0, 1]
+    return a_k, state
+
+
+@pytest.mark.parametrize("slope", [34.0, -4.4, 0.0, 80.0])
+def test_stiffness_estimator_is_the_slope_of_the_force_correction(slope):
+    # ΔF = s (X̂ − x0) + c: whatever the offset c, ΔF minus its low-passed mean is s times
+    # X̂ minus its own (one filter, a linear map), so the covariance is s·v and the estimate
+    # s·v/(v + v₀), v X̂'s variance about its low-passed mean: (A²/2)·(ωτ)²/(1 + (ωτ)²).
+    # â_k = −that/(rel k̂) (the policy's own a_k, 0.7 here, is replaced). After 40 s (13 τ)
+    # the start has decayed (e^-13 · 13 ≈ 3e-5); the 2ω ripple of the product passes two
+    # low-passes, each ≈ 1/(2ωτ) = 0.08, so ≈ 0.6 % of the slope: 1 % of it, plus 1e-3.
+    a_k, _ = _estimate(slope, 40.0)
+    wt = 2 * np.pi / 3.0 * 3.0
+    v = 0.02 ** 2 / 2 * wt ** 2 / (1 + wt ** 2)
+    expected = -slope * v / (v + ADAPT_VAR_M2) / (0.3 * 545.0)
+    assert a_k == pytest.approx(expected, rel=0.01, abs=1e-3)
+    # past the clip: ±rel·k̂ is the largest correction it makes (reached as the start decays)
+    assert _estimate(400.0, 40.0)[0] == pytest.approx(-1.0, abs=1e-4)
+
+
+def test_stiffness_estimator_ignores_a_kick_and_restarts_each_episode():
+    # a 0.5 s transient with a 20 mm error and ΔF swinging ±20 N: each update's weight is
+    # 1/(1 + 20²), so the estimate moves by under 0.005. The same swing at zero error would
+    # move it ten times as much (the check can fail).
+    settled, _ = _estimate(34.0, 40.0)
+    kicked, _ = _estimate(34.0, 40.5, kick=(40.0, 40.5, 0.02))
+    unweighted, _ = _estimate(34.0, 40.5, kick=(40.0, 40.5, 0.0))
+    assert abs(kicked - settled) < 0.005
+    assert abs(unweighted - settled) > 10 * abs(kicked - settled)
+    # a zero state (an episode's start) starts from the first observation: no estimate yet
+    a_k, state = _estimate(34.0, 0.01)
+    assert a_k == 0.0 and state[0, 6] == 1.0 and state[0, 0] == 0.8
+
+
+def test_stiffness_estimator_setting_is_checked():
+    with pytest.raises(ValueError, match=r"stiffness_adapt_s=0 must be null or a number in "
+                                         r"\(0, 60\] s"):
+        ForceStiffnessAction(gym.make("MPALegResidual-v0"), stiffness_adapt_s=0)
