@@ -104,6 +104,48 @@ def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillat
         SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
 
 
+def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass():
+    # persistent_mm 2 mm, each sample of e clipped to ±3 mm. Row 0: a 4 mm-amplitude error
+    # with the reference's period (2.83 mm RMS), which the limit-cycle monitor cannot see (its
+    # change over a period is zero) and the divergence level (15 mm) does not reach. Armed at
+    # 6 s, the running mean (3 s) rises as m (1 − exp(−(t − 6 s)/3 s)), m the clipped signal's
+    # mean square (5.9 mm²), so it passes (2 mm)² at 6 s + 3 s · ln(m / (m − 4 mm²)) = 9.4 s,
+    # give or take the ripple at twice the reference frequency: the mean's ripple is at most
+    # max|e² − m| / (2ωτ) = 5.9 / 12.6 = 0.47 mm², its slope there m/τ · (1 − 4/m) = 0.63 mm²/s,
+    # so ± 0.75 s: 0.8 s. Row 1: a 1 mm periodic error and a kick at 7 s
+    # (20 mm, decaying with 0.1 s): clipped, the kick adds ~1 mm² (9 mm² for its 0.19 s above
+    # 3 mm and its tail) to 0.5 mm², no trip; unclipped it adds ~6.7 mm² and trips.
+    t = DT * np.arange(round(5 * T / DT))
+    wave = np.sin(2 * np.pi * t / T)
+    kick = np.where(t >= 7.0, 0.020 * np.exp(-np.clip(t - 7.0, 0.0, None) / 0.1), 0.0)
+    errors = np.stack([0.004 * wave, 0.001 * wave + kick], axis=1)
+
+    def first(spec):  # the limit-cycle monitor set out of the way (it sees the kick again)
+        spec = dataclasses.replace(spec, aperiodic_mm=100.0)
+        drove = _drive(Supervised(Constant(0.0), Constant(1.0), DT, T, spec), errors) > 0.5
+        return [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
+                for r in range(2)]
+
+    m = np.mean(np.clip(0.004 * wave, -0.003, 0.003) ** 2)
+    expected = ARM_PERIODS * T + 3.0 * np.log(m / (m - 0.002 ** 2))
+    clipped = first(SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=3.0))
+    assert clipped[0] == pytest.approx(expected, abs=0.8) and clipped[1] is None
+    assert first(SupervisorSpec(persistent_mm=2.0))[1] is not None  # the clip is what passes it
+    assert first(SupervisorSpec()) == [None, None]  # not watched unless set
+    # the fallback's own loop is not judged on it: with a last resort, the fallback keeps
+    # driving under the same periodic error
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T,
+                     SupervisorSpec(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
+                                    last_resort="ff"))
+    out = _drive(sup, errors[:, :1])
+    assert np.all(out[round(clipped[0] / DT) + 1:] == 1.0)
+    with pytest.raises(ValueError, match=r"persistent_clip_mm=1.5 mm is outside the allowed "
+                                         r"range \(2, 100\] mm"):
+        SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=1.5)
+    with pytest.raises(ValueError, match=r"persistent_clip_mm needs supervisor\.persistent_mm"):
+        SupervisorSpec(persistent_clip_mm=3.0)
+
+
 def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
     # A 20 mm step at 1 s that the fallback does not remove (a fallback that cannot hold this
     # plant): the error monitor trips at 1.41 s (previous test) and hands over to the
