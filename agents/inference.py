@@ -283,7 +283,8 @@ class DeployedPolicy:
                    policy.stiffness_adapt_s)
 
     def reset(self) -> None:
-        """The next observation starts an episode (integrals and previous action at zero)."""
+        """The next observation starts an episode (integrals, previous action and stiffness
+        estimator restart)."""
         self._fresh = True
 
     def act(self, observation: np.ndarray, episode_start: bool = False) -> np.ndarray:
