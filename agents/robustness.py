@@ -97,7 +97,7 @@ LEVEL_KICK = Impulse(t_s=10.0, force_N=30.0, duration_s=0.05)
 KICKS: dict[str, dict[str, float]] = {"load_1.6kg": {"extra_mass_kg": 1.6}}
 
 HARM_RATIO = 1.5  # a learned residual may be this much worse than the best feedback baseline
-HARM_FLOOR_MM = 0.05  # [mm] below this a difference is no harm (sensor noise is 0.02 mm)
+HARM_FLOOR_MM = 0.05  # [mm] an RMSE below this is no harm (sensor noise is 0.02 mm)
 FEEDBACK_BASELINES = ("pid", "mbfb")
 
 
