@@ -22,7 +22,15 @@ from typing import Any
 import numba
 import numpy as np
 
-from agents.wrappers import ADAPT_STATE, FeatureSpec, _adapt_row, _constants
+from agents.wrappers import (
+    ADAPT_STARTED,
+    ADAPT_STATE,
+    FeatureSpec,
+    _adapt_commit,
+    _adapt_row,
+    _constants,
+    adapt_time_constant,
+)
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.contract import OBS_COS as OCOS
@@ -150,9 +158,9 @@ def _forward(raw, integ, prev, adapt, fresh, spec_i, spec_f, mean, inv_std, clip
         k_ref = raw[OK] * OBS_KREF_SCALE
         if fs[4] > 0.0:  # its stiffness estimator replaces a_k
             if fresh:
-                adapt[6] = 0.0
+                adapt[ADAPT_STARTED] = 0.0
             out[1] = _adapt_row(adapt, x, x - raw[OX], k_ref, spec_f[2], fs[4], fs[2])
-            adapt[5] = min(max(out[0], -1.0), 1.0) * fs[1]
+            _adapt_commit(adapt, out[0], fs[1])
         F0, k0 = fast.force_and_stiffness(x, 0.0, 0.0, 0.0, consts)
         Fe, ke = fast.force_and_stiffness(x, 0.0, BAR, 0.0, consts)
         Ff, kf = fast.force_and_stiffness(x, 0.0, 0.0, BAR, consts)
@@ -220,12 +228,10 @@ class DeployedPolicy:
                                                                                   float)
         self._high = np.full(n_act, np.inf) if action_high is None else np.asarray(action_high,
                                                                                    float)
-        if stiffness_adapt_s is not None and force_stiffness is None:
-            raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
-                             "the stiffness coordinate of ForceStiffnessAction)")
-        self._fs = np.zeros(5) if force_stiffness is None else np.array(
+        tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
+        self._fs = np.zeros(5) if force_stiffness is None else np.array(  # fs[4] 0: no estimator
             [1.0, force_stiffness[0], force_stiffness[1], force_stiffness[2] * BAR,
-             stiffness_adapt_s or 0.0])
+             0.0 if tau is None else tau])
         self._consts = _constants(params)
         # buffers, allocated once
         m = 1 if spec is None else spec.n_integrals

@@ -17,6 +17,7 @@ from agents.wrappers import (
     ActionSpec,
     FeatureSpec,
     adapt_stiffness,
+    adapt_time_constant,
     force_stiffness_to_residual,
     integral_step,
 )
@@ -42,10 +43,8 @@ class LearnedPolicy:
                  stiffness_adapt_s: float | None = None) -> None:
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
-        if stiffness_adapt_s is not None and force_stiffness is None:
-            raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
-                             "the stiffness coordinate of ForceStiffnessAction)")
-        self.stiffness_adapt_s = stiffness_adapt_s
+        self.stiffness_adapt_s = adapt_time_constant(stiffness_adapt_s,
+                                                     force_stiffness is not None)
 
     def _mean_action(self, obs: np.ndarray) -> np.ndarray:
         """SB3's deterministic action, ``model.predict(obs, deterministic=True)``, by the same

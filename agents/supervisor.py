@@ -137,7 +137,8 @@ class SupervisorSpec:
                         low_open=True, unit="mm")
         if self.persistent_clip_mm is not None:
             if self.persistent_mm is None:
-                raise ValueError("supervisor.persistent_clip_mm needs supervisor.persistent_mm")
+                raise ValueError(f"supervisor.persistent_clip_mm={self.persistent_clip_mm!r} "
+                                 "needs supervisor.persistent_mm")
             check_range("supervisor.persistent_clip_mm", self.persistent_clip_mm,
                         self.persistent_mm, 100.0, low_open=True, unit="mm")
 

@@ -52,9 +52,13 @@ period; k̂ is ~545 N/m). The estimator low-passes (time constant τ) the means 
 applied ΔF, their covariance c and X̂'s variance v. It low-passes the slope c / (v + v₀) once
 more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiffness_rel`` k̂).
 Each update's weight is 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
-moves it. Off the training plants, a_k learned from the error features went the wrong way on
-some plants; the estimate needs no learning. It is a controller's computation from its own
-commands and the reference, like the features, never a plant parameter.
+moves it. An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
+known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period.
+Off the training plants, a_k learned from the error features went the wrong way on some
+plants; the estimate needs no learning. It is a controller's computation from its own commands
+and the reference, like the features, never a plant parameter. The action space stays (a_F,
+a_k), so a config switches the estimator on or off without another network; the policy's a_k
+is then ignored, and its Gaussian adds noise, not bias, to PPO's gradient.
 
 Single-env wrappers are what an rl-zoo config names as ``env_wrapper``; the ``…Vector…`` ones wrap
 the native vector env (same-step autoreset). Both use the module's functions, so they agree.
@@ -178,12 +182,8 @@ class ActionSpec:
     stiffness_adapt_s: float | None = None
 
     def __post_init__(self) -> None:
-        tau = self.stiffness_adapt_s
-        if tau is not None:
-            if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0 < tau <= 60:
-                raise ValueError(f"stiffness_adapt_s={tau!r} must be null or a number in "
-                                 "(0, 60] s")
-            object.__setattr__(self, "stiffness_adapt_s", float(tau))
+        object.__setattr__(self, "stiffness_adapt_s",
+                           adapt_time_constant(self.stiffness_adapt_s))
         for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
                              ("rate_penalty", 0.0, 100.0)):
             value = getattr(self, name)
@@ -305,25 +305,41 @@ def _force_stiffness_kernel(a, x_ref, k_ref, force_N, stiffness_rel, scale_pa, c
 
 
 # The stiffness estimator (ActionSpec.stiffness_adapt_s; module docs)
+ADAPT_MAX_S = 60.0  # [s] its longest time constant: twenty reference periods, two episodes
 ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a start's or a
 #                       kick's transient says nothing about the plant's stiffness
 ADAPT_VAR_M2 = 1e-5  # [m²] regulariser of X̂'s variance, (3.2 mm)², a twentieth of the 20 mm
 #                      reference's A²/2: a reference that barely moves gives no estimate
 ADAPT_STATE = 7  # an estimator's state: means of X̂ and ΔF, their covariance, X̂'s variance,
 #                  the slope, the last ΔF applied, started (0 until its first observation)
+ADAPT_DF, ADAPT_STARTED = 5, 6  # its columns that the callers write
+
+
+def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
+    """``stiffness_adapt_s`` checked: None (no estimator) or a time constant in
+    (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``)."""
+    if tau is None:
+        return None
+    if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0 < tau <= ADAPT_MAX_S:
+        raise ValueError(f"stiffness_adapt_s={tau!r} must be null or a number in "
+                         f"(0, {ADAPT_MAX_S:g}] s")
+    if not force_stiffness:
+        raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
+                         "the stiffness coordinate of ForceStiffnessAction)")
+    return float(tau)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _adapt_row(s, x_ref, e, k_ref, dt, tau, stiffness_rel):
     """One step of one row's stiffness estimator (state ``s`` updated in place) → its a_k."""
-    if s[6] == 0.0:
-        for j in range(6):
+    if s[ADAPT_STARTED] == 0.0:
+        for j in range(ADAPT_STARTED):
             s[j] = 0.0
-        s[0], s[6] = x_ref, 1.0
+        s[0], s[ADAPT_STARTED] = x_ref, 1.0
     al = dt / tau / (1.0 + (e / ADAPT_ERROR_M) ** 2)
     s[0] += al * (x_ref - s[0])
-    s[1] += al * (s[5] - s[1])
-    dx, dF = x_ref - s[0], s[5] - s[1]
+    s[1] += al * (s[ADAPT_DF] - s[1])
+    dx, dF = x_ref - s[0], s[ADAPT_DF] - s[1]
     s[2] += al * (dF * dx - s[2])
     s[3] += al * (dx * dx - s[3])
     span = stiffness_rel * abs(k_ref)
@@ -334,12 +350,19 @@ def _adapt_row(s, x_ref, e, k_ref, dt, tau, stiffness_rel):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _adapt_commit(s, a_F, force_N):
+    """The force correction ΔF applied this step, which the estimator's next update pairs
+    with the next X̂ (module docs)."""
+    s[ADAPT_DF] = min(max(a_F, -1.0), 1.0) * force_N
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _adapt_kernel(a, x_ref, x, k_ref, state, dt, tau, stiffness_rel, force_N, out):
     for i in range(a.shape[0]):
         out[i, 0] = a[i, 0]
         out[i, 1] = _adapt_row(state[i], x_ref[i], x_ref[i] - x[i], k_ref[i], dt, tau,
                                stiffness_rel)
-        state[i, 5] = min(max(a[i, 0], -1.0), 1.0) * force_N
+        _adapt_commit(state[i], a[i, 0], force_N)
 
 
 def adapt_stiffness(action: np.ndarray, obs: np.ndarray, state: np.ndarray, dt: float,

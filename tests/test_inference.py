@@ -172,3 +172,21 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
     torch.manual_seed(0)
     assert np.array_equal(sampled, theirs.predict(obs)[0])
     assert not np.array_equal(sampled, ours.predict(obs, deterministic=True)[0])
+
+
+def test_both_policies_check_the_estimator_setting():
+    # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
+    # the training wrapper refuses it (one check: agents.wrappers.adapt_time_constant)
+    fs = (20.0, 0.3, 1.0)
+    layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
+    makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),
+              lambda tau, fs=fs: DeployedPolicy(layers, "Tanh", 9, force_stiffness=fs,
+                                                stiffness_adapt_s=tau))
+    for make in makers:
+        for bad in (0, -1.0, 61.0, float("nan")):
+            with pytest.raises(ValueError, match=r"stiffness_adapt_s=.* must be null or a "
+                                                 r"number in \(0, 60\] s"):
+                make(bad)
+        with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
+            make(3.0, None)
+        make(3.0)

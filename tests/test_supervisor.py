@@ -133,16 +133,19 @@ def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass(
     assert first(SupervisorSpec(persistent_mm=2.0))[1] is not None  # the clip is what passes it
     assert first(SupervisorSpec()) == [None, None]  # not watched unless set
     # the fallback's own loop is not judged on it: with a last resort, the fallback keeps
-    # driving under the same periodic error
+    # driving under the same periodic error for six periods after the monitor re-arms (two
+    # periods into the fallback's stage), where the policy's stage tripped 3.4 s after arming
+    t8 = DT * np.arange(round(clipped[0] / DT) + round((ARM_PERIODS + 6) * T / DT))
     sup = Supervised(Constant(0.0), Constant(1.0), DT, T,
                      SupervisorSpec(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
                                     last_resort="ff"))
-    out = _drive(sup, errors[:, :1])
+    out = _drive(sup, 0.004 * np.sin(2 * np.pi * t8 / T)[:, None])
     assert np.all(out[round(clipped[0] / DT) + 1:] == 1.0)
     with pytest.raises(ValueError, match=r"persistent_clip_mm=1.5 mm is outside the allowed "
                                          r"range \(2, 100\] mm"):
         SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=1.5)
-    with pytest.raises(ValueError, match=r"persistent_clip_mm needs supervisor\.persistent_mm"):
+    with pytest.raises(ValueError,
+                       match=r"persistent_clip_mm=3\.0 needs supervisor\.persistent_mm"):
         SupervisorSpec(persistent_clip_mm=3.0)
 
 

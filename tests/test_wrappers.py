@@ -10,6 +10,7 @@ import pytest
 
 import mpa_gym  # noqa: F401  (registers the env ids)
 from agents.wrappers import (
+    ADAPT_STARTED,
     ADAPT_STATE,
     ADAPT_VAR_M2,
     FeatureSpec,
@@ -18,6 +19,7 @@ from agents.wrappers import (
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
     adapt_stiffness,
+    adapt_time_constant,
     force_stiffness_to_residual,
     harmonic_basis,
     integral_step,
@@ -182,7 +184,10 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
     for _ in range(45):  # crosses the 30-step episode end
         a = rng.uniform(-1, 1, (2, 2))
         env_obs = single.env.env_obs  # the map works at the env's X̂ and k̂, shown or not
-        applied = force_stiffness_to_residual(a[:1], env_obs[None], single.force_N,
+        given = a[:1] if adapt is None else adapt_stiffness(  # a_k the estimator's
+            a[:1], env_obs[None], single._adapt.copy(), single.dt, adapt, single.stiffness_rel,
+            single.force_N)
+        applied = force_stiffness_to_residual(given, env_obs[None], single.force_N,
                                               single.stiffness_rel, single.scale_bar)[0]
         so, _, te, tr, _ = single.step(a[0])
         vo, _, _, _, vinfo = vec.step(a)
@@ -192,10 +197,7 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
         if not errors_only:
             assert np.all(so[6:8] == 0.0) == mask  # measured pressures hidden, or not
         if previous_action:  # the residual the env applied, in its action units
-            if adapt is None:
-                np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
-            else:  # a_k is the estimator's, not the one given
-                assert np.any(so[b + 2 + m:b + 4 + m] != applied)
+            np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
         if fine:  # the error again, clipped to ±fine
             assert so[d - r - 1] == np.float32(np.clip(e, -fine, fine))
         if te or tr:
@@ -288,10 +290,15 @@ def test_stiffness_estimator_ignores_a_kick_and_restarts_each_episode():
     assert abs(unweighted - settled) > 10 * abs(kicked - settled)
     # a zero state (an episode's start) starts from the first observation: no estimate yet
     a_k, state = _estimate(34.0, 0.01)
-    assert a_k == 0.0 and state[0, 6] == 1.0 and state[0, 0] == 0.8
+    assert a_k == 0.0 and state[0, ADAPT_STARTED] == 1.0 and state[0, 0] == 0.8
 
 
 def test_stiffness_estimator_setting_is_checked():
-    with pytest.raises(ValueError, match=r"stiffness_adapt_s=0 must be null or a number in "
-                                         r"\(0, 60\] s"):
-        ForceStiffnessAction(gym.make("MPALegResidual-v0"), stiffness_adapt_s=0)
+    # one check for the training wrapper, LearnedPolicy and DeployedPolicy (test_inference)
+    for bad in (0, -1.0, 61.0, float("nan"), True, "3"):
+        with pytest.raises(ValueError, match=r"stiffness_adapt_s=.* must be null or a number "
+                                             r"in \(0, 60\] s"):
+            ForceStiffnessAction(gym.make("MPALegResidual-v0"), stiffness_adapt_s=bad)
+    assert adapt_time_constant(None) is None and adapt_time_constant(3) == 3.0
+    with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
+        adapt_time_constant(3.0, force_stiffness=False)
