@@ -78,7 +78,7 @@ from gymnasium.vector import VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
 
 from mpa_gym.model import fast
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
 from mpa_gym.task.contract import OBS_KREF_SCALE, check_action
@@ -320,13 +320,12 @@ def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
     (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``)."""
     if tau is None:
         return None
-    if isinstance(tau, bool) or not isinstance(tau, int | float) or not 0 < tau <= ADAPT_MAX_S:
-        raise ValueError(f"stiffness_adapt_s={tau!r} must be null or a number in "
-                         f"(0, {ADAPT_MAX_S:g}] s")
+    tau = check_range("stiffness_adapt_s", tau, 0.0, ADAPT_MAX_S, low_open=True, unit="s",
+                      note="or null: no estimator")
     if not force_stiffness:
         raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
                          "the stiffness coordinate of ForceStiffnessAction)")
-    return float(tau)
+    return tau
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -497,7 +496,8 @@ class ForceStiffnessVectorAction(_ForceStiffnessMap, VectorWrapper):
         residual = self._residual(a)
         obs, r, te, tr, info = self.env.step(residual)
         self._obs = self._env_obs(obs)  # same-step autoreset: a new episode's first observation
-        self._adapt[np.logical_or(te, tr)] = 0.0
+        done = np.logical_or(te, tr)
+        self._adapt[done] = 0.0
         if self.rate_penalty:
-            r = r - self._rate_cost(a, np.logical_or(te, tr))
+            r = r - self._rate_cost(a, done)
         return obs, r, te, tr, info
