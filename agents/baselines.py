@@ -13,6 +13,15 @@ true plant).
   pressures: each step it solves, on the nominal model at the measured state, for the pressures
   whose ground force is m(dV̂/dt + g) plus a PID force correction *and* whose joint stiffness
   (Eq. 23) is k̂ — two equations affine in (P'_e, P'_f).
+- ``AdaptiveFeedforward`` (``afc``): feedforward + adaptive feedforward cancellation of the
+  periodic error (Bodson, Sacks and Khosla, "Harmonic generation in adaptive feedforward
+  cancellation schemes", IEEE TAC 1994): the error's mean and first harmonic at the
+  reference's frequency ω₀ are integrated into an antagonistic correction (+u, −u) that learns
+  the periodic command the feedforward lacks. It adapts over seconds, so it acts at ω₀ alone,
+  where the regulator's dead time is a small phase (40 ms is 4.8° at 1/3 Hz): the averaged
+  loop is stable while the plant's phase at ω₀ stays within ±90°, a delay margin of ~0.75 s,
+  where pid's and mbfb's bandwidth limits them to ~30 ms. It is the supervisor's last resort
+  (``agents.supervisor``), not a tracking controller: it is slow and knows only ω₀.
 
 Both PID laws are what a control engineer would field: the derivative acts on the measured
 velocity error through a first-order low-pass filter (time constant ``tf_s``; 0: unfiltered), and
@@ -218,6 +227,50 @@ class PIDResidual(_PlanPolicy):
 
 
 @dataclass
+class AdaptiveFeedforward(_PlanPolicy):
+    """Feedforward + adaptive feedforward cancellation (module docstring):
+    u = θ₀ + θ_s sin ω₀t + θ_c cos ω₀t [bar], residual (+u, −u), with
+    dθ/dt = γ e (1, 2 sin ω₀t, 2 cos ω₀t), e = X̂ − X.
+
+    Averaged over a period, with the plant's gain G [m/bar] from u to X (in phase at ω₀), each
+    coefficient obeys dθ/dt = γ (d − G θ) for the error's own component d: it settles on d / G
+    with the time constant 1 / (γ G). γ = 1 / (``adapt_s`` G), G taken on the nominal model
+    along the reference as dF/du / k̂ (the force per bar of u at X̂, over the reference
+    stiffness), so ``adapt_s`` is that time constant. It is two reference periods: at one
+    period the averaging does not hold on this leg (the mean and the harmonic couple through
+    the muscles' nonlinearity) and the loop left its bounds on a 0.5 kg load.
+
+    State, one row per observation: (θ₀, θ_s, θ_c, s), s ∈ {−1, 0, 1} the direction the last
+    output saturated in; while it is non-zero, errors that push further into the saturation
+    are not integrated (anti-windup by clamping, as ``_pid``)."""
+
+    adapt_s: float = 6.0  # [s] time constant of the averaged adaptation
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = True
+                ) -> tuple[np.ndarray, Any]:
+        obs, single = _batch(observation)
+        n = obs.shape[0]
+        st = np.zeros((n, 4)) if state is None else np.array(state, dtype=float).reshape(n, 4)
+        if episode_start is not None:
+            st[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        e = obs[:, OXR] - obs[:, OX]
+        phase = 2 * math.pi * self._time(obs) / self._per_row(
+            n, lambda p: p.design.reference.period)
+        basis = np.stack([np.ones(n), np.sin(phase), np.cos(phase)], axis=-1)
+        c = affine_in_pressures(obs[:, OXR], obs[:, OVR], self.params)
+        gain = (c.J[:, 0, 0] - c.J[:, 0, 1]) * BAR / (obs[:, OK] * OBS_KREF_SCALE)  # [m/bar]
+        winding = np.sign(e) * st[:, 3] > 0.0
+        rate = np.where(winding, 0.0, e * self.cfg.dt_s / (self.adapt_s * gain))
+        st[:, :3] += rate[:, None] * basis * np.array([1.0, 2.0, 2.0])
+        u = np.einsum("ij,ij->i", st[:, :3], basis)
+        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
+        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
+        st[:, 3] = np.where(np.abs(raw[:, 0]) > 1.0, np.sign(u), 0.0)
+        return (a[0] if single else a), st
+
+
+@dataclass
 class StiffnessFeedback(_PlanPolicy):
     """Model-based, stiffness-preserving feedback (module docstring).
 
@@ -278,7 +331,8 @@ class StiffnessFeedback(_PlanPolicy):
         return self._hold(obs, state, rows, correction, self.ki_N_per_m_s)
 
 
-BASELINES = {"ff": "ZeroResidual", "pid": "PIDResidual", "mbfb": "StiffnessFeedback"}
+BASELINES = {"ff": "ZeroResidual", "pid": "PIDResidual", "mbfb": "StiffnessFeedback",
+             "afc": "AdaptiveFeedforward"}
 
 # What each baseline's defaults were tuned on (``mpa-gym tune-baselines``; the report shows it).
 TUNED_ON = {
@@ -293,6 +347,8 @@ TUNED_ON = {
             "terminated plant counts 100 mm) over 32 plants drawn (seed 0) from the training "
             "ranges of configs/ppo_residual.yaml, every effect on in every draw, and their 32 "
             "undamped twins; 9.91 mm (the first trial's gains: 11.6 mm)",
+    "afc": "nothing: an adaptation time constant of two reference periods (the nominal "
+           "model's gain normalises it); the supervisor's last resort",
 }
 
 
@@ -326,4 +382,4 @@ def make_baseline(name: str, scenario: Any = "nominal", stiffness: Any = None,
         return ZeroResidual()
     cfg = task if isinstance(task, TaskConfig) else TaskConfig.from_kwargs(task)
     plan = make_plan(scenario, stiffness, cfg, params)
-    return PIDResidual(plan, params) if name == "pid" else StiffnessFeedback(plan, params)
+    return globals()[BASELINES[name]](plan, params)

@@ -275,9 +275,10 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     # a run trained on several designs (a list) has none of its own to give the fallback
     stiffness = given.get("stiffness", None if isinstance(own.get("stiffness"), list)
                           else own.get("stiffness"))
-    fallback = make_baseline(cfg.supervisor.fallback, scenario, stiffness, task)
+    fallback, last = (None if name is None else make_baseline(name, scenario, stiffness, task)
+                      for name in (cfg.supervisor.fallback, cfg.supervisor.last_resort))
     return Supervised(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
-                      load_scenario(scenario).reference.period, cfg.supervisor)
+                      load_scenario(scenario).reference.period, cfg.supervisor, last)
 
 
 def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False

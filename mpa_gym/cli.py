@@ -563,7 +563,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
             cmd_evaluate, show_evaluate)
     p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],
-                   metavar="RUN_DIR|ff|pid|mbfb", help="controllers (default ff pid mbfb)")
+                   metavar="RUN_DIR|ff|pid|mbfb|afc", help="controllers (default ff pid mbfb)")
     p.add_argument("--scenarios", nargs="+", default=None, metavar="NAME_OR_YAML",
                    help="default: the paper's scenarios and the held-out plants")
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")

@@ -33,7 +33,7 @@ SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
 LOADED = {"name": "loaded", "duration_s": 18.0, "plant": {"extra_mass_kg": 1.0}}
 
 
-@pytest.mark.parametrize("name", ["ff", "pid", "mbfb"])
+@pytest.mark.parametrize("name", ["ff", "pid", "mbfb", "afc"])
 def test_baselines_drive_the_env_through_the_policy_interface(name):
     # 18 s: the integrators settle in the first 9 s, the metrics use the last three periods
     env = gym.make("MPALegResidual-v0", scenario=LOADED)
@@ -43,6 +43,10 @@ def test_baselines_drive_the_env_through_the_policy_interface(name):
     assert not tr.terminated and len(tr.t) == 1800
     if name == "ff":  # the expert sags under the unknown load …
         assert m["position_rmse_mm"] > 10
+    elif name == "afc":  # … the slow adaptation has removed most of the sag by 9 s (its
+        # averaged law leaves exp(−9 s / 6 s) = 22 % of it there, less after) …
+        ff = metrics(run_episode(env, make_baseline("ff", LOADED), seed=3), 3.0, None)
+        assert m["position_rmse_mm"] < 0.5 * ff["position_rmse_mm"]
     else:  # … the feedback baselines hold the reference
         assert m["position_rmse_mm"] < 1.0
     # batched observations give the same actions as single ones (state per row)
@@ -281,6 +285,50 @@ def test_integrators_do_not_wind_up_while_the_output_saturates(name):
     assert st[0, 0] == first
     _, st = ctrl.predict(_obs_with_error(-0.001, 0.0), st, np.zeros(1, bool))
     assert st[0, 0] == pytest.approx(first - 0.001 * 0.01)
+
+
+def test_adaptive_feedforward_follows_its_averaged_law():
+    # A synthetic loop e = d − G u (the plant's gain G [m/bar] from u to X, in phase at ω₀,
+    # the nominal model's along X̂ = 0.8 m, V̂ = 0) with a periodic error d = 4 mm + 3 mm ·
+    # sin(ω₀t + 0.7): averaged over a period, each coefficient obeys dθ/dt = γ (d − G θ) with
+    # γ = 1 / (adapt_s G), so the error's mean and first harmonic decay as exp(−t / adapt_s).
+    # Measured over whole periods ending at t: the averaging's ripple (the products at 2ω₀,
+    # of relative size T / (2π adapt_s) = 8 %) bounds the agreement at 15 %.
+    from agents.baselines import AdaptiveFeedforward
+    from mpa_gym.design.feedforward import affine_in_pressures
+    from mpa_gym.model.params import BAR
+    from mpa_gym.task.contract import OBS_COS, OBS_KREF, OBS_KREF_SCALE, OBS_SIN
+
+    afc = make_baseline("afc")
+    assert isinstance(afc, AdaptiveFeedforward)
+    T, dt, k_hat = afc.plan.design.reference.period, afc.cfg.dt_s, 545.0
+    c = affine_in_pressures(np.array([0.8]), np.array([0.0]))
+    G = float((c.J[0, 0, 0] - c.J[0, 0, 1]) * BAR / k_hat)
+    n = round(T / dt)
+    t = dt * np.arange(6 * round(afc.adapt_s / dt))
+    w = 2 * np.pi * t / T
+    d = 0.004 + 0.003 * np.sin(w + 0.7)
+    obs = _obs_with_error(0.0, 0.0)
+    obs[0, OXR], obs[0, OVR], obs[0, OBS_KREF] = 0.8, 0.0, k_hat / OBS_KREF_SCALE
+    e, u, st = np.empty_like(t), 0.0, None
+    for j in range(len(t)):
+        e[j] = d[j] - G * u
+        obs[0, OX], obs[0, OBS_SIN], obs[0, OBS_COS] = 0.8 - e[j], np.sin(w[j]), np.cos(w[j])
+        a, st = afc.predict(obs, st, np.array([j == 0]))
+        u = float(a[0, 0]) * afc.cfg.residual_scale_bar
+
+    def parts(j):  # (mean, first-harmonic amplitude) of e over the period ending at step j
+        win, ww = e[j - n:j], w[j - n:j]
+        return abs(win.mean()), np.hypot(2 * np.mean(win * np.sin(ww)),
+                                          2 * np.mean(win * np.cos(ww)))
+
+    for m in (1, 2, 4):
+        j = round(m * afc.adapt_s / dt)
+        mid = j - n // 2  # the window's centre
+        want = np.exp(-t[mid] / afc.adapt_s)
+        mean, harm = parts(j)
+        assert mean / 0.004 == pytest.approx(want, rel=0.15)
+        assert harm / 0.003 == pytest.approx(want, rel=0.15)
 
 
 def test_tuning_runs_on_the_training_plants_and_says_so():
