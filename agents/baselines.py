@@ -78,14 +78,17 @@ class _PlanPolicy:
     def cfg(self) -> TaskConfig:
         return self.plan.cfg
 
+    def _check_rows(self, n: int) -> None:
+        if self.row_plans and n != len(self.row_plans):
+            raise ValueError(f"a stack of {len(self.row_plans)} controllers got a batch of {n} "
+                             "observations; row i is controller i's")
+
     def _plan_rows(self, n: int) -> list[tuple[TaskPlan, Any]]:
         """(plan, rows) pairs covering a batch of n rows; rows whose plans have equal designs
         (most scenarios differ only in the plant) share one pair."""
+        self._check_rows(n)
         if not self.row_plans:
             return [(self.plan, slice(None))]
-        if n != len(self.row_plans):
-            raise ValueError(f"a stack of {len(self.row_plans)} controllers got a batch of {n} "
-                             "observations; row i is controller i's")
         groups: dict[Any, tuple[TaskPlan, list[int]]] = {}
         for i, p in enumerate(self.row_plans):
             groups.setdefault(p.design, (p, []))[1].append(i)
@@ -93,6 +96,7 @@ class _PlanPolicy:
 
     def _per_row(self, n: int, value: Any) -> Any:
         """value(plan) for each row: a scalar (one plan) or an (n,) array."""
+        self._check_rows(n)
         if not self.row_plans:
             return value(self.plan)
         return np.array([value(p) for p in self.row_plans])
@@ -137,8 +141,7 @@ class _PlanPolicy:
         st[fresh] = 0.0
         e = obs[:, OXR] - obs[:, OX]
         de = obs[:, OVR] - obs[:, OV]
-        winding = np.sign(e) * st[:, 2] > 0.0  # e would drive the output deeper into saturation
-        st[:, 0] += np.where(winding, 0.0, e * self.cfg.dt_s)
+        st[:, 0] += np.where(self._winding(st, e), 0.0, e * self.cfg.dt_s)
         alpha = self.cfg.dt_s / (tf + self.cfg.dt_s)
         st[:, 1] = np.where(fresh, de, st[:, 1] + alpha * (de - st[:, 1]))
         return kp * e + ki * st[:, 0] + kd * st[:, 1], st
@@ -156,8 +159,15 @@ class _PlanPolicy:
 
     @staticmethod
     def _saturated(st: np.ndarray, u: np.ndarray, clipped: np.ndarray) -> None:
-        """Record in the state where the output ``u`` was clipped, in u's direction."""
-        st[:, 2] = np.where(clipped, np.sign(u), 0.0)
+        """Record in the state's last column where the output ``u`` was clipped, in u's
+        direction."""
+        st[:, -1] = np.where(clipped, np.sign(u), 0.0)
+
+    @staticmethod
+    def _winding(st: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """Rows where the error ``e`` would drive the output deeper into the saturation the
+        state's last column records (anti-windup by clamping: not integrated there)."""
+        return np.sign(e) * st[:, -1] > 0.0
 
 
 @functools.lru_cache(maxsize=64)
@@ -230,43 +240,51 @@ class PIDResidual(_PlanPolicy):
 class AdaptiveFeedforward(_PlanPolicy):
     """Feedforward + adaptive feedforward cancellation (module docstring):
     u = θ₀ + θ_s sin ω₀t + θ_c cos ω₀t [bar], residual (+u, −u), with
-    dθ/dt = γ e (1, 2 sin ω₀t, 2 cos ω₀t), e = X̂ − X.
+    dθ/dt = (e / G) (1, 2 sin ω₀t, 2 cos ω₀t) / τ, e = X̂ − X.
 
-    Averaged over a period, with the plant's gain G [m/bar] from u to X (in phase at ω₀), each
-    coefficient obeys dθ/dt = γ (d − G θ) for the error's own component d: it settles on d / G
-    with the time constant 1 / (γ G). γ = 1 / (``adapt_s`` G), G taken on the nominal model
-    along the reference as dF/du / k̂ (the force per bar of u at X̂, over the reference
-    stiffness), so ``adapt_s`` is that time constant. It is two reference periods: at one
-    period the averaging does not hold on this leg (the mean and the harmonic couple through
-    the muscles' nonlinearity) and the loop left its bounds on a 0.5 kg load.
+    G [m/bar] is the gain from u to X on the nominal model along the reference, dF/du / k̂ (the
+    force per bar of u at X̂ over the reference stiffness; in phase at ω₀, whose period is far
+    below the leg's natural frequency): it varies ~2× over a period with k̂. Averaged over a
+    period, on a plant whose gain is G, e / G = d / G − u for the error d the feedforward
+    leaves, so each coefficient obeys dθ/dt = (d̄ − θ) / τ, d̄ the mean or harmonic of d / G:
+    the mean and first harmonic of e / G decay as exp(−t / τ). τ is ``adapt_periods``
+    reference periods: at one period the averaging does not hold on this leg (the mean and the
+    harmonic couple through the muscles' nonlinearity) and the loop left its bounds on a
+    0.5 kg load.
 
     State, one row per observation: (θ₀, θ_s, θ_c, s), s ∈ {−1, 0, 1} the direction the last
-    output saturated in; while it is non-zero, errors that push further into the saturation
-    are not integrated (anti-windup by clamping, as ``_pid``)."""
+    output saturated in (anti-windup by clamping, as ``_pid``)."""
 
-    adapt_s: float = 6.0  # [s] time constant of the averaged adaptation
+    adapt_periods: float = 2.0  # τ, the averaged adaptation's time constant [reference periods]
+
+    def gain(self, obs: np.ndarray) -> np.ndarray:
+        """[m/bar] (n,) G at the observed reference (NaN where the model has no answer)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = affine_in_pressures(obs[:, OXR], obs[:, OVR], self.params)
+            return (c.J[:, 0, 0] - c.J[:, 0, 1]) * BAR / (obs[:, OK] * OBS_KREF_SCALE)
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
                 ) -> tuple[np.ndarray, Any]:
         obs, single = _batch(observation)
         n = obs.shape[0]
+        tau = self.adapt_periods * self._per_row(n, lambda p: p.design.reference.period)
         st = np.zeros((n, 4)) if state is None else np.array(state, dtype=float).reshape(n, 4)
         if episode_start is not None:
-            st[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+            st[np.broadcast_to(np.asarray(episode_start, dtype=bool).reshape(-1), (n,))] = 0.0
         e = obs[:, OXR] - obs[:, OX]
-        phase = 2 * math.pi * self._time(obs) / self._per_row(
-            n, lambda p: p.design.reference.period)
+        phase = np.arctan2(obs[:, OSIN], obs[:, OCOS])
         basis = np.stack([np.ones(n), np.sin(phase), np.cos(phase)], axis=-1)
-        c = affine_in_pressures(obs[:, OXR], obs[:, OVR], self.params)
-        gain = (c.J[:, 0, 0] - c.J[:, 0, 1]) * BAR / (obs[:, OK] * OBS_KREF_SCALE)  # [m/bar]
-        winding = np.sign(e) * st[:, 3] > 0.0
-        rate = np.where(winding, 0.0, e * self.cfg.dt_s / (self.adapt_s * gain))
+        gain = self.gain(obs)
+        usable = np.isfinite(gain) & (gain > 0.0)  # else no update: the model has no answer
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rate = np.where(self._winding(st, e) | ~usable, 0.0,
+                            e * self.cfg.dt_s / (tau * gain))
         st[:, :3] += rate[:, None] * basis * np.array([1.0, 2.0, 2.0])
         u = np.einsum("ij,ij->i", st[:, :3], basis)
         raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
         a = np.clip(raw, -1.0, 1.0).astype(np.float32)
-        st[:, 3] = np.where(np.abs(raw[:, 0]) > 1.0, np.sign(u), 0.0)
+        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
         return (a[0] if single else a), st
 
 
@@ -347,8 +365,9 @@ TUNED_ON = {
             "terminated plant counts 100 mm) over 32 plants drawn (seed 0) from the training "
             "ranges of configs/ppo_residual.yaml, every effect on in every draw, and their 32 "
             "undamped twins; 9.91 mm (the first trial's gains: 11.6 mm)",
-    "afc": "nothing: an adaptation time constant of two reference periods (the nominal "
-           "model's gain normalises it); the supervisor's last resort",
+    "afc": f"nothing: its adaptation's time constant is {AdaptiveFeedforward.adapt_periods:g} "
+           "reference periods (the nominal model's gain normalises it); the supervisor's last "
+           "resort",
 }
 
 

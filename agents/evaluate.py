@@ -12,7 +12,8 @@ window `mpa-gym simulate` uses) unless said otherwise:
   (``None`` without an impulse, ``inf`` if it never does);
 - ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds;
 - ``fallback_s``: for a run under a ``supervisor`` (``agents.supervisor``), the time its
-  fallback took over (``None``: it never did, or the controller has no supervisor).
+  fallback took over (``None``: it never did, or the controller has no supervisor);
+  ``last_resort_s`` the time its last resort did.
 
 With ``robustness=True`` the report also holds the robustness sweep of ``agents.robustness``
 (grids of real-rig effects, easy / medium / hard levels) with its heatmaps. On a machine with a
@@ -39,7 +40,7 @@ from agents.baselines import BASELINES, Policy, stack
 from agents.config import EVAL_SEED
 from agents.policies import load_policy
 from agents.seeds import group_runs, require_stats
-from agents.supervisor import first_take_over, took_over
+from agents.supervisor import LAST_RESORT, first_take_over, took_over
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.task.contract import SAFETY_CLIPPED
@@ -64,7 +65,7 @@ class Trace:
     clipped: np.ndarray  # bool
     rewards: np.ndarray
     terminated: bool
-    fallback: np.ndarray | None = None  # bool per step: a supervisor's fallback drove it
+    fallback: np.ndarray | None = None  # per step, a supervisor's stage (``took_over``)
 
 
 def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any] | None = None
@@ -74,12 +75,12 @@ def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any]
     state, start = None, np.array([True])
     rows: list[tuple[Any, ...]] = []
     rewards = []
-    fallback: list[bool] = []
+    fallback: list[int] = []
     terminated = False
     while True:
         action, state = policy.predict(obs, state, start, deterministic=True)
         if (flags := took_over(policy, state)) is not None:
-            fallback.append(bool(flags[0]))
+            fallback.append(int(flags[0]))
         start = np.array([False])
         obs, r, terminated, truncated, info = env.step(action)
         rows.append((info["t_s"], info["x_m"], info["x_ref_m"], info["k_N_per_m"],
@@ -139,7 +140,7 @@ def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
     live = np.ones(n, dtype=bool)
     cols: list[list[Any]] = [[] for _ in range(n)]
     rewards: list[list[float]] = [[] for _ in range(n)]
-    fallback: list[list[bool]] = [[] for _ in range(n)]
+    fallback: list[list[int]] = [[] for _ in range(n)]
     terminated = np.zeros(n, dtype=bool)
     first = True
     while live.any():
@@ -153,7 +154,7 @@ def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
                 g, r = where[i]
                 actions[g][r] = a[k]
                 if flags is not None and live[i]:
-                    fallback[i].append(bool(flags[k]))
+                    fallback[i].append(int(flags[k]))
         first = False
         for g, venv in enumerate(envs):
             obs, rew, term, trunc, info = venv.step(actions[g])
@@ -207,6 +208,7 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
         "return": float(trace.rewards.sum()),
         "terminated": trace.terminated,
         "fallback_s": first_take_over(trace.t, trace.fallback),
+        "last_resort_s": first_take_over(trace.t, trace.fallback, LAST_RESORT),
     }
 
 
@@ -412,7 +414,8 @@ COLUMNS = [("position_rmse_mm", "position RMSE [mm]"), ("position_max_mm", "max 
            ("stiffness_rmse_pct", "stiffness RMSE [% of k̂]"),
            ("saturation_pct", "pressure saturation [% of steps]"),
            ("recovery_s", "recovery after impulse [s]"), ("return", "return"),
-           ("fallback_s", "supervisor's fallback took over at [s]")]
+           ("fallback_s", "supervisor's fallback took over at [s]"),
+           ("last_resort_s", "supervisor's last resort took over at [s]")]
 
 
 def markdown(report: dict[str, Any]) -> str:
@@ -442,6 +445,9 @@ def markdown(report: dict[str, Any]) -> str:
     for key, title in COLUMNS:
         if key == "fallback_s" and not report.get("supervisors"):
             continue
+        if key == "last_resort_s" and not any(m.get(key) is not None for row in res.values()
+                                              for m in row.values()):
+            continue
         names = ctrls + [f"{g} (IQM [95 % CI])" for g in groups]
         out += [f"## {title}", "", "| scenario | " + " | ".join(names) + " |",
                 "|---|" + "---|" * len(names)]
@@ -458,8 +464,9 @@ def markdown(report: dict[str, Any]) -> str:
                 if f"{key}_ci" in a:
                     lo, hi = a[f"{key}_ci"]
                     cell += f" [{lo:.3f}, {hi:.3f}]"
-                if key == "fallback_s":
-                    cell = f"in {a['fallback_runs']} of {a['n_runs']} runs"
+                if key in ("fallback_s", "last_resort_s"):
+                    runs = a["fallback_runs" if key == "fallback_s" else "last_resort_runs"]
+                    cell = f"in {runs} of {a['n_runs']} runs"
                 if a["terminated"]:
                     cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
                 cells.append(cell)

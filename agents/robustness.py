@@ -42,7 +42,7 @@ from agents.baselines import Policy
 from agents.config import EVAL_SEED
 from agents.evaluate import eval_task
 from agents.policies import load_policy
-from agents.supervisor import first_take_over, took_over
+from agents.supervisor import LAST_RESORT, first_take_over, took_over
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
@@ -146,7 +146,7 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
             x = np.full((steps, m * n), np.nan)
             xr = np.full((steps, m * n), np.nan)
             dead = np.zeros(m * n, dtype=bool)
-            fb = np.zeros((steps, m * n), dtype=bool)  # a supervisor's fallback drove the step
+            fb = np.zeros((steps, m * n), dtype=np.int8)  # the supervisor's stage at the step
             states: list[Any] = [None] * m
             start = np.ones(n, dtype=bool)
             action = np.zeros((m * n, *venv.single_action_space.shape))
@@ -157,7 +157,7 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
                                                         deterministic=True)
                     action[b * n:(b + 1) * n] = a
                     if (flags := took_over(loaded[c][0], states[b])) is not None:
-                        fb[k, b * n:(b + 1) * n] = flags & ~dead[b * n:(b + 1) * n]
+                        fb[k, b * n:(b + 1) * n] = np.where(dead[b * n:(b + 1) * n], 0, flags)
                 start = np.zeros(n, dtype=bool)
                 obs, _, term, trunc, info = venv.step(action)
                 xk, xrk = info["x_m"].copy(), info["x_ref_m"].copy()
@@ -187,18 +187,19 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
     e = run["x"] - run["x_ref"]
     out = []
     for i in range(e.shape[1]):
-        fallback_s = first_take_over(run["t"], run["fallback"][:, i]) if "fallback" in run \
-            else None
+        stages = run["fallback"][:, i] if "fallback" in run else None
+        took = {"fallback_s": first_take_over(run["t"], stages),
+                "last_resort_s": first_take_over(run["t"], stages, LAST_RESORT)}
         if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
-                        "terminated": bool(run["terminated"][i]), "fallback_s": fallback_s})
+                        "terminated": bool(run["terminated"][i]), **took})
             continue
         w = e[-METRIC_PERIODS * per:, i].reshape(METRIC_PERIODS, per)
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
                     "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
-                    "terminated": False, "fallback_s": fallback_s})
+                    "terminated": False, **took})
     return out
 
 
@@ -354,8 +355,8 @@ def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[s
 
 
 def _cell(m: dict[str, Any]) -> str:
-    fb = m.get("fallback_s")
-    took = "" if fb is None else f" ‡{fb:.1f} s"
+    fb, lr = m.get("fallback_s"), m.get("last_resort_s")
+    took = ("" if fb is None else f" ‡{fb:.1f} s") + ("" if lr is None else f" §{lr:.1f} s")
     if m["terminated"]:
         return "terminated" + took
     s = f"{m['position_rmse_mm']:.3f}"
@@ -370,7 +371,8 @@ def markdown(rob: dict[str, Any]) -> list[str]:
            f"with the reference's period exceeds {rob['unstable_aperiodic_mm']:g} mm RMS (a "
            "limit cycle or a divergence); terminated: the leg left its bounds. A learned "
            "controller's cells outside its training ranges are marked †; ‡t s: its "
-           "supervisor's fallback took over at t s (the figure is the supervised loop's).", ""]
+           "supervisor's fallback took over at t s, §t s: its last resort did (the figure is "
+           "the supervised loop's).", ""]
     for name, g in rob["grids"].items():
         rf, cf = g["rows"]["field"], g["cols"]["field"]
         out += [f"### {name}", "", f"Rows `{rf}`, columns `{cf}`; every cell also has "

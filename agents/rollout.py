@@ -13,6 +13,11 @@ Every stop is written to the log as ``{"event": "stopped", "fault": reason}`` an
 fault: the rest of the session is not run), a fault in the pre-flight or a reset, Ctrl-C or
 SIGTERM. The rig is vented in each case. ``--dry-run`` starts the device emulator on UDP
 loopback and rolls out against it.
+
+A supervised run (``agents.supervisor``) logs ``{"event": "fallback", ...}`` at the step its
+fallback takes over and ``{"event": "last_resort", ...}`` at the step its last resort does; each
+step's ``fallback`` field is the stage that drove it (0 the policy, 1 the fallback, 2 the last
+resort).
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ import numpy as np
 
 from agents.evaluate import Trace, metrics
 from agents.policies import load_policy
-from agents.supervisor import took_over
+from agents.supervisor import FALLBACK, POLICY, took_over
 from mpa_gym.hardware.env import (
     CONTROL_HZ,
     CONTROL_HZ_RANGE,
@@ -176,18 +181,19 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                 obs, info = env.reset(seed=seed + ep)
                 state, start = None, np.array([True])
                 rows: list[dict[str, Any]] = []
-                fell = False  # a supervisor's fallback has taken over this episode
+                fell = POLICY  # the supervisor's stage this episode (agents.supervisor)
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])
                     obs, r, term, trunc, info = env.step(action)
                     if (flags := took_over(policy, state)) is not None:
-                        if flags[0] and not fell:  # the step it took over: say so in the log
-                            fell = True
+                        if flags[0] > fell:  # the step a stage took over: say so in the log
+                            fell = int(flags[0])
                             env.defer(functools.partial(_write, f, {
-                                "event": "fallback", "episode": ep, "t_s": info["t_s"],
+                                "event": "fallback" if fell == FALLBACK else "last_resort",
+                                "episode": ep, "t_s": info["t_s"],
                                 "supervisor": run_cfg.supervisor.describe()}))
-                        info = {**info, "fallback": bool(flags[0])}
+                        info = {**info, "fallback": int(flags[0])}
                     # the record is written in the slack of the next period, after its command
                     # went out (env.defer), not between this telemetry and that command
                     record = functools.partial(_log_step, f, rows, ep, r, term, info)

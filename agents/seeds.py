@@ -146,7 +146,8 @@ def iqm_ci(scores: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, dict[str, Any]]:
     """Per scenario, for the group of ``runs`` (their labels in ``results``): each metric's
     IQM over the runs and ``<metric>_ci`` [low, high], plus ``n_runs``, ``terminated`` (how
-    many runs terminated) and ``fallback_runs`` (in how many a supervisor's fallback took over)."""
+    many runs terminated), ``fallback_runs`` and ``last_resort_runs`` (in how many a
+    supervisor's fallback, and its last resort, took over)."""
     labels = [_label(r) for r in runs]
     scen = list(results)
     out: dict[str, dict[str, Any]] = {sc: {"n_runs": len(runs)} for sc in scen}
@@ -160,8 +161,9 @@ def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, 
         out[sc]["terminated"] = sum(bool(results[sc][lab]["terminated"]) for lab in labels)
         rec = [results[sc][lab]["recovery_s"] for lab in labels]
         out[sc]["recovery_s"] = None if any(r is None for r in rec) else float(np.median(rec))
-        out[sc]["fallback_runs"] = sum(results[sc][lab].get("fallback_s") is not None
-                                       for lab in labels)
+        for key in ("fallback", "last_resort"):
+            out[sc][f"{key}_runs"] = sum(results[sc][lab].get(f"{key}_s") is not None
+                                         for lab in labels)
     return out
 
 

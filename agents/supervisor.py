@@ -54,7 +54,8 @@ period, did the divergence level. The period of grace was set on the default con
 the sweep's 40 ms row (beyond its training range): with half a period the unloaded leg's loop
 ended 4e-6 mm above the feedforward alone (the last resort was ``ff`` then; the no-harm audit's
 bound is strict); with two periods it left its bounds under pid before the feedforward took
-over.
+over. The grace was set with ``ff`` as the last resort and kept for ``afc``: the loops it hands
+over are the same (no other cell of either grid reaches the last resort).
 
 The fallback is not run until the first trip. It takes over bumplessly (Åström & Hägglund,
 "Advanced PID control", 2006, § 3.5): a fallback with a ``take_over(observation, held, state,
@@ -80,13 +81,15 @@ held-out scenario trips (but the impulse on one seed of five, where pid then tra
 0.001 mm), the 30 N × 50 ms kick on the 1.6 kg leg stays the policy's on every seed (it
 recovers in 0.46-0.84 s, pid alone in 2.2 s), and the kicked easy or medium level goes to pid
 on one or two seeds of five. A higher level lets the chatter run on (at 1 mm clipped at 1.5 mm:
-10 no-harm breaches of 285 against 4); without the clip, a level this low hands every kick
+10 no-harm breaches of 285 against 4, with ``ff`` as the last resort; the 4 were the 40 ms
+cell, and none remain with ``afc``); without the clip, a level this low hands every kick
 over. A trip on a healthy loop costs tracking quality (the fallback's instead of the policy's),
 never stability where the fallback is stable.
 
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
-rig rollouts run it unchanged; ``took_over(policy, state)`` says which rows the fallback drives,
-and the reports give the time it took over, so a figure never hides which controller earned it.
+rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage (the policy,
+the fallback or the last resort), and the reports give the times the fallback and the last
+resort took over, so a figure never hides which controller earned it.
 """
 
 from __future__ import annotations
@@ -97,17 +100,20 @@ from typing import Any
 
 import numpy as np
 
-from agents.baselines import Policy
+from agents.baselines import BASELINES, Policy
 from mpa_gym.model.params import check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
 FALLBACKS = ("pid", "mbfb")
-LAST_RESORTS = ("ff", "afc")
+# the last resorts (agents.baselines names) and what ``describe`` calls them
+LAST_RESORTS = {"ff": "ff alone",
+                "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
 ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
 GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
-# the monitor's columns per row (``Supervised``): the two running means, the stage (0 policy,
-# 1 fallback, 2 last resort), the steps taken, the step the stage began; then the ring buffers
+POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages: who drives
+# the monitor's columns per row (``Supervised``): the two running means, the stage, the steps
+# taken, the step the stage began; then the ring buffers
 M_ERR, M_AP, M_STAGE, M_STEP, M_SINCE, M_PER = range(6)
 M_RING = 6
 
@@ -168,22 +174,20 @@ class SupervisorSpec:
 
     def describe(self) -> str:
         out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
-               f"exceeds {self.error_mm:g} mm or, from the third period on, the RMS of its "
+               f"exceeds {self.error_mm:g} mm or, after {ARM_PERIODS} periods, the RMS of its "
                f"change over one period (over {self.aperiodic_window_s:g} s"
                + (f", each sample clipped to ±{self.aperiodic_clip_mm:g} mm"
                   if self.aperiodic_clip_mm is not None else "")
                + f") exceeds {self.aperiodic_mm:g} mm")
         if self.persistent_mm is not None:
-            out += (f" or, from the third period on, the error's own RMS over "
+            out += (f" or, after {ARM_PERIODS} periods, the error's own RMS over "
                     f"{self.aperiodic_window_s:g} s"
                     + (f" (each sample clipped to ±{self.persistent_clip_mm:g} mm)"
                        if self.persistent_clip_mm is not None else "")
                     + f" exceeds {self.persistent_mm:g} mm")
         if self.last_resort:
-            what = {"ff": "ff alone",
-                    "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
-            out += (f"; {what[self.last_resort]} once {self.fallback}'s loop, given one period "
-                    f"to settle, passes {self.error_mm:g} mm too")
+            out += (f"; {LAST_RESORTS[self.last_resort]} once {self.fallback}'s loop, given "
+                    f"{GRACE_PERIODS} period(s) to settle, passes {self.error_mm:g} mm too")
         return out
 
 
@@ -202,8 +206,10 @@ class Supervised:
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec(), last: Policy | None = None) -> None:
-        if spec.last_resort is not None and last is None:
+        if spec.last_resort is not None and (
+                last is None or type(last).__name__ != BASELINES[spec.last_resort]):
             raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its controller "
+                             f"{BASELINES[spec.last_resort]}, got {type(last).__name__} "
                              "(agents.policies.supervise builds it)")
         self.policy, self.fallback, self.last, self.spec = policy, fallback, last, spec
         self.n_period = max(1, round(period_s / dt))
@@ -285,21 +291,24 @@ class Supervised:
                          mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
 
     @staticmethod
-    def driving(state: Any) -> np.ndarray | None:
-        """Per row, whether the fallback (or the last resort) drives (None before the first
-        step)."""
-        return None if state is None else np.asarray(state[2])[:, M_STAGE] > 0.0
+    def stage(state: Any) -> np.ndarray | None:
+        """Per row, who drives: ``POLICY``, ``FALLBACK`` or ``LAST_RESORT`` (None before the
+        first step)."""
+        return None if state is None else np.asarray(state[2])[:, M_STAGE].astype(np.int8)
 
 
 def took_over(policy: Policy, state: Any) -> np.ndarray | None:
-    """Rows of a batch that a supervisor's fallback drives; None for an unsupervised policy."""
-    return Supervised.driving(state) if isinstance(policy, Supervised) else None
+    """Per row of a batch, the supervisor's stage (``POLICY`` 0, ``FALLBACK`` 1,
+    ``LAST_RESORT`` 2: non-zero where a fallback drives); None for an unsupervised policy."""
+    return Supervised.stage(state) if isinstance(policy, Supervised) else None
 
 
-def first_take_over(t: np.ndarray, flags: np.ndarray | None) -> float | None:
-    """[s] the time ``t`` of the first step of one episode whose flag is set; None if none is
-    (or there are no flags: an unsupervised controller)."""
-    if flags is None:
+def first_take_over(t: np.ndarray, stages: np.ndarray | None, stage: int = FALLBACK
+                    ) -> float | None:
+    """[s] the time ``t`` of the first step of one episode whose stage (``took_over``'s, per
+    step) reached ``stage``; None if none did (or there are no stages: an unsupervised
+    controller)."""
+    if stages is None:
         return None
-    hit = np.flatnonzero(flags)
+    hit = np.flatnonzero(np.asarray(stages) >= stage)
     return None if hit.size == 0 else float(t[hit[0]])

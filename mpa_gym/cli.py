@@ -637,7 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
     p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
             cmd_rollout, show_rollout)
-    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb|excite",
+    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb|afc|excite",
                    help="a run folder, a baseline, or excite: the safe excitation whose log "
                         "`mpa-gym identify` fits")
     p.add_argument("--device", default=None, metavar="serial:///dev/ttyX|udp://HOST:PORT")
@@ -686,7 +686,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--inference: actions timed on the deployed path (SB3: N/10)")
     p.add_argument("--no-emulator", action="store_true",
                    help="--inference: without the emulator process")
-    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb",
+    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb|afc",
                    help="instead: the rig loop's overruns, jitter and latency against a device "
                         "emulator in another process, each run beside the machine's floor (the "
                         "same wait with no work)")

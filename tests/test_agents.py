@@ -43,10 +43,11 @@ def test_baselines_drive_the_env_through_the_policy_interface(name):
     assert not tr.terminated and len(tr.t) == 1800
     if name == "ff":  # the expert sags under the unknown load …
         assert m["position_rmse_mm"] > 10
-    elif name == "afc":  # … the slow adaptation has removed most of the sag by 9 s (its
-        # averaged law leaves exp(−9 s / 6 s) = 22 % of it there, less after) …
+    elif name == "afc":  # … the slow adaptation removes the sag: its averaged law leaves
+        # exp(−t / 6 s) of it, 22 % at 9 s to 5 % at 18 s, an RMS of 12 % over the window
+        # (0.2 leaves room for the nonlinearity's coupling of mean and harmonic) …
         ff = metrics(run_episode(env, make_baseline("ff", LOADED), seed=3), 3.0, None)
-        assert m["position_rmse_mm"] < 0.5 * ff["position_rmse_mm"]
+        assert m["position_rmse_mm"] < 0.2 * ff["position_rmse_mm"]
     else:  # … the feedback baselines hold the reference
         assert m["position_rmse_mm"] < 1.0
     # batched observations give the same actions as single ones (state per row)
@@ -288,28 +289,27 @@ def test_integrators_do_not_wind_up_while_the_output_saturates(name):
 
 
 def test_adaptive_feedforward_follows_its_averaged_law():
-    # A synthetic loop e = d − G u (the plant's gain G [m/bar] from u to X, in phase at ω₀,
-    # the nominal model's along X̂ = 0.8 m, V̂ = 0) with a periodic error d = 4 mm + 3 mm ·
-    # sin(ω₀t + 0.7): averaged over a period, each coefficient obeys dθ/dt = γ (d − G θ) with
-    # γ = 1 / (adapt_s G), so the error's mean and first harmonic decay as exp(−t / adapt_s).
-    # Measured over whole periods ending at t: the averaging's ripple (the products at 2ω₀,
-    # of relative size T / (2π adapt_s) = 8 %) bounds the agreement at 15 %.
+    # A synthetic loop e = d − G u (the plant's gain G [m/bar] from u to X, in phase at ω₀)
+    # at a fixed X̂ = 0.8 m, V̂ = 0, k̂ = 545 N/m, where the controller's G is a constant, with
+    # a periodic error d = 4 mm + 3 mm · sin(ω₀t + 0.7): averaged over a period, each
+    # coefficient obeys dθ/dt = (d̄ / G − θ) / τ, so the error's mean and first harmonic decay
+    # as exp(−t / τ), τ = adapt_periods · T. Measured over whole periods ending at t: the
+    # averaging's ripple (the products at 2ω₀, of relative size T / (2π τ) = 8 %) bounds the
+    # agreement at 15 %.
     from agents.baselines import AdaptiveFeedforward
-    from mpa_gym.design.feedforward import affine_in_pressures
-    from mpa_gym.model.params import BAR
     from mpa_gym.task.contract import OBS_COS, OBS_KREF, OBS_KREF_SCALE, OBS_SIN
 
     afc = make_baseline("afc")
     assert isinstance(afc, AdaptiveFeedforward)
-    T, dt, k_hat = afc.plan.design.reference.period, afc.cfg.dt_s, 545.0
-    c = affine_in_pressures(np.array([0.8]), np.array([0.0]))
-    G = float((c.J[0, 0, 0] - c.J[0, 0, 1]) * BAR / k_hat)
+    T, dt = afc.plan.design.reference.period, afc.cfg.dt_s
+    tau = afc.adapt_periods * T
+    obs = _obs_with_error(0.0, 0.0)
+    obs[0, OXR], obs[0, OVR], obs[0, OBS_KREF] = 0.8, 0.0, 545.0 / OBS_KREF_SCALE
+    G = float(afc.gain(obs)[0])
     n = round(T / dt)
-    t = dt * np.arange(6 * round(afc.adapt_s / dt))
+    t = dt * np.arange(6 * round(tau / dt))
     w = 2 * np.pi * t / T
     d = 0.004 + 0.003 * np.sin(w + 0.7)
-    obs = _obs_with_error(0.0, 0.0)
-    obs[0, OXR], obs[0, OVR], obs[0, OBS_KREF] = 0.8, 0.0, k_hat / OBS_KREF_SCALE
     e, u, st = np.empty_like(t), 0.0, None
     for j in range(len(t)):
         e[j] = d[j] - G * u
@@ -323,12 +323,37 @@ def test_adaptive_feedforward_follows_its_averaged_law():
                                           2 * np.mean(win * np.cos(ww)))
 
     for m in (1, 2, 4):
-        j = round(m * afc.adapt_s / dt)
-        mid = j - n // 2  # the window's centre
-        want = np.exp(-t[mid] / afc.adapt_s)
+        j = round(m * tau / dt)
+        want = np.exp(-t[j - n // 2] / tau)  # at the window's centre
         mean, harm = parts(j)
         assert mean / 0.004 == pytest.approx(want, rel=0.15)
         assert harm / 0.003 == pytest.approx(want, rel=0.15)
+
+
+def test_adaptive_feedforward_gain_is_the_simulated_legs():
+    # The gain G that normalises the adaptation, taken on the nominal model along the
+    # reference (dF/du over k̂), against the simulated leg: a constant antagonistic u = 0.05 bar
+    # over the feedforward shifts X by ⟨G⟩ u on average over a period (the period is far below
+    # the leg's natural frequency, so the shift is quasi-static). 3 %: the plant's gain varies
+    # ~2× along the cycle and the shift is not exactly linear in it at second order.
+    from agents.baselines import AdaptiveFeedforward
+
+    afc = make_baseline("afc", SHORT | {"plant": {}})
+    assert isinstance(afc, AdaptiveFeedforward)
+    u = 0.05
+    runs = []
+    for du in (0.0, u):
+        env = gym.make("MPALegResidual-v0", scenario=SHORT | {"plant": {}})
+        obs, _ = env.reset(seed=0)
+        xs, gains = [], []
+        a = np.array([du, -du], dtype=np.float32) / afc.cfg.residual_scale_bar
+        for _ in range(600):
+            gains.append(float(afc.gain(obs[None])[0]))
+            obs, *_ = env.step(a)
+            xs.append(obs[OX])
+        runs.append((np.array(xs[-300:]), np.array(gains[-300:])))
+    shift = np.mean(runs[1][0] - runs[0][0])
+    assert shift / u == pytest.approx(np.mean(runs[0][1]), rel=0.03)
 
 
 def test_tuning_runs_on_the_training_plants_and_says_so():

@@ -15,6 +15,7 @@ import mpa_gym  # noqa: F401
 from agents.baselines import BAR, make_baseline
 from agents.config import ConfigError, parse_config
 from agents.evaluate import evaluate
+from agents.robustness import _cell as robustness_cell
 from agents.robustness import _scenario, cell_metrics, run_batches
 from agents.rollout import read_log, rollout
 from agents.supervisor import (
@@ -227,7 +228,8 @@ def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
     # is itself unstable there, so a supervisor that hands a failing residual (the stiff PID
     # of the next test) to it still loses the loop; with the feedforward as the last resort the
     # loop ends within the no-harm floor (0.05 mm) of the feedforward alone, which Theorem 1
-    # keeps stable whatever the regulator's delay (it has no feedback to delay).
+    # keeps stable whatever the regulator's delay (it has no feedback to delay), and with afc
+    # below it. The cell's metrics and its Markdown say when each stage took over.
     sc = _sc(30.0)
     plants = [{"pressure_dead_time_s": 0.04, "pressure_lag_s": 0.03}]
     pid = make_baseline("pid", sc)
@@ -249,6 +251,11 @@ def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
     # (its error is the delay's phase at ω₀, 2 mm here): the loop ends at less than half
     # of it, so no transient left in the window can put it above (the no-harm bound, strict)
     assert m_adaptive["position_rmse_mm"] < 0.5 * m_ff["position_rmse_mm"]
+    assert m_adaptive["fallback_s"] < T < m_adaptive["last_resort_s"]  # diverged in period 1
+    assert m_adaptive["last_resort_s"] - m_adaptive["fallback_s"] >= GRACE_PERIODS * T
+    assert m_plain["last_resort_s"] is None and m_pid["fallback_s"] is None
+    assert f"‡{m_adaptive['fallback_s']:.1f} s §{m_adaptive['last_resort_s']:.1f} s" in \
+        robustness_cell(m_adaptive)
 
 
 def _sc(duration_s: float) -> object:
@@ -409,30 +416,37 @@ def test_config_supervisor_defaults_and_round_trip(tmp_path):
 
 @REALTIME
 def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path):
-    # A run whose config asks for a supervisor with a hair trigger (0.05 mm of error RMS),
-    # rolled out on the device emulator (its own thread, real time) playing a rig the run was
-    # not trained on: 20 ms regulator dead time, 30 ms lag and an unmodelled 0.5 kg load (its
-    # sag is ~10 mm under the feedforward). The deployed policy comes supervised, the log has
-    # one "fallback" event naming the supervisor, the steps from it on are flagged, and the
-    # episode's metrics say when.
+    # A run whose config asks for a supervisor with a hair trigger (0.05 mm of error RMS) and
+    # afc as the last resort, rolled out on the device emulator (its own thread, real time)
+    # playing a rig the run was not trained on: 20 ms regulator dead time, 30 ms lag and an
+    # unmodelled 0.5 kg load (its sag is ~10 mm under the feedforward; pid holds it to
+    # ~0.4 mm, over the trigger). The deployed policy comes supervised; the log has one
+    # "fallback" event naming the supervisor and, one grace period later, one "last_resort"
+    # event; each step's stage says who drove it, and the episode's metrics say when.
     cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
     hp = cfg["MPALegResidual-v0"]
     hp.update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=64, n_epochs=1)
     hp["env_kwargs"]["task"]["episode_s"] = 0.5
     cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000,
-                          supervisor={"fallback": "pid", "error_mm": 0.05})
+                          supervisor={"fallback": "pid", "error_mm": 0.05,
+                                      "last_resort": "afc"})
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     run = train(tmp_path / "cfg.yaml", tmp_path / "run", progress=False)
-    rig = {"name": "slow_rig", "duration_s": 3.0, "plant": {
+    rig = {"name": "slow_rig", "duration_s": 4.5, "plant": {
         "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5}}
     log = tmp_path / "r.jsonl"
     with serving(scenario=rig) as (url, _):
-        out = rollout(str(run), url, log, episode_s=3.0)
+        out = rollout(str(run), url, log, episode_s=4.5)
     records = read_log(log)
-    events = [r for r in records if r.get("event") == "fallback"]
+    events = [r for r in records if r.get("event") in ("fallback", "last_resort")]
     steps = [r for r in records if "reward" in r]  # the steps (not the events)
-    assert len(events) == 1 and events[0]["supervisor"].startswith("pid takes over")
-    first = next(i for i, r in enumerate(steps) if r["fallback"])
-    assert all(r["fallback"] for r in steps[first:])  # the latch holds to the end
-    assert events[0]["t_s"] == steps[first]["t_s"]
+    assert [e["event"] for e in events] == ["fallback", "last_resort"]
+    assert events[0]["supervisor"].startswith("pid takes over")
+    stage = np.array([r["fallback"] for r in steps])
+    first, last = int(np.argmax(stage >= 1)), int(np.argmax(stage >= 2))
+    assert first < last and np.all(stage[:first] == 0)  # (a hair trigger may trip at once)
+    assert np.all(stage[first:last] == 1) and np.all(stage[last:] == 2)  # the latches hold
+    assert last - first >= round(GRACE_PERIODS * T / DT)  # pid's loop judged after its grace
+    assert [e["t_s"] for e in events] == [steps[first]["t_s"], steps[last]["t_s"]]
     assert out["episodes"][0]["fallback_s"] == steps[first]["t_s"]
+    assert out["episodes"][0]["last_resort_s"] == steps[last]["t_s"]
