@@ -40,7 +40,7 @@ from agents.baselines import BASELINES, Policy, stack
 from agents.config import EVAL_SEED
 from agents.policies import load_policy
 from agents.seeds import group_runs, require_stats
-from agents.supervisor import LAST_RESORT, first_take_over, took_over
+from agents.supervisor import take_over_times, took_over
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.task.contract import SAFETY_CLIPPED
@@ -207,8 +207,7 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
         "recovery_s": recovery,
         "return": float(trace.rewards.sum()),
         "terminated": trace.terminated,
-        "fallback_s": first_take_over(trace.t, trace.fallback),
-        "last_resort_s": first_take_over(trace.t, trace.fallback, LAST_RESORT),
+        **take_over_times(trace.t, trace.fallback),
     }
 
 
@@ -465,8 +464,7 @@ def markdown(report: dict[str, Any]) -> str:
                     lo, hi = a[f"{key}_ci"]
                     cell += f" [{lo:.3f}, {hi:.3f}]"
                 if key in ("fallback_s", "last_resort_s"):
-                    runs = a["fallback_runs" if key == "fallback_s" else "last_resort_runs"]
-                    cell = f"in {runs} of {a['n_runs']} runs"
+                    cell = f"in {a[key.removesuffix('_s') + '_runs']} of {a['n_runs']} runs"
                 if a["terminated"]:
                     cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
                 cells.append(cell)

@@ -42,7 +42,7 @@ from agents.baselines import Policy
 from agents.config import EVAL_SEED
 from agents.evaluate import eval_task
 from agents.policies import load_policy
-from agents.supervisor import LAST_RESORT, first_take_over, took_over
+from agents.supervisor import take_over_times, took_over
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
@@ -187,9 +187,7 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
     e = run["x"] - run["x_ref"]
     out = []
     for i in range(e.shape[1]):
-        stages = run["fallback"][:, i] if "fallback" in run else None
-        took = {"fallback_s": first_take_over(run["t"], stages),
-                "last_resort_s": first_take_over(run["t"], stages, LAST_RESORT)}
+        took = take_over_times(run["t"], run["fallback"][:, i] if "fallback" in run else None)
         if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
                         "terminated": bool(run["terminated"][i]), **took})

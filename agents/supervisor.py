@@ -199,10 +199,10 @@ class Supervised:
     controller ``spec.last_resort`` names) drives the rest of the episode from its rest state.
 
     State: (policy's, fallback's, monitor, last resort's) with the monitor an (n, 6 + 3N) array
-    per row: the
-    ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the stage, the steps
-    taken, the step the stage began, running mean of the clipped e²), then ring buffers of the
-    last N = T / dt errors and of the policy's last N actions (extensor's, then flexor's)."""
+    per row: the ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the
+    stage, the steps taken, the step the stage began, running mean of the clipped e²), then ring
+    buffers of the last N = T / dt errors and of the policy's last N actions (extensor's, then
+    flexor's)."""
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec(), last: Policy | None = None) -> None:
@@ -250,7 +250,7 @@ class Supervised:
                 | (((np.sqrt(mon[:, M_AP]) > self.spec.aperiodic_mm * 1e-3)
                     | (np.sqrt(mon[:, M_PER]) > self.persistent))
                    & (stage_before == 0.0)))
-        last = 2.0 if self.spec.last_resort else 1.0
+        last = LAST_RESORT if self.spec.last_resort else FALLBACK
         mon[:, M_STAGE] = np.where(trip, np.minimum(stage_before + 1.0, last), stage_before)
         if self.spec.last_resort:  # each stage is judged on its own loop: the monitor restarts
             moved = (mon[:, M_STAGE] > stage_before) & (mon[:, M_STAGE] < last)
@@ -273,9 +273,9 @@ class Supervised:
             fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
             b, fb = self.fallback.predict(observation, fb, None, deterministic)
         out = np.where(driving[:, None], np.atleast_2d(b), a2)
-        resort = mon[:, M_STAGE] >= 2.0
+        resort = mon[:, M_STAGE] >= LAST_RESORT
         if resort.any():  # the last resort, from its rest state on the rows it takes over
-            fresh = resort & ~(stage_before >= 2.0) if lr is not None else resort
+            fresh = resort & (stage_before < LAST_RESORT)
             c, lr = self.last.predict(observation, lr, fresh[0] if single else fresh,
                                       deterministic)
             out[resort] = np.atleast_2d(c)[resort]
@@ -303,12 +303,13 @@ def took_over(policy: Policy, state: Any) -> np.ndarray | None:
     return Supervised.stage(state) if isinstance(policy, Supervised) else None
 
 
-def first_take_over(t: np.ndarray, stages: np.ndarray | None, stage: int = FALLBACK
-                    ) -> float | None:
-    """[s] the time ``t`` of the first step of one episode whose stage (``took_over``'s, per
-    step) reached ``stage``; None if none did (or there are no stages: an unsupervised
-    controller)."""
-    if stages is None:
-        return None
-    hit = np.flatnonzero(np.asarray(stages) >= stage)
-    return None if hit.size == 0 else float(t[hit[0]])
+def take_over_times(t: np.ndarray, stages: np.ndarray | None) -> dict[str, float | None]:
+    """The reports' ``fallback_s`` and ``last_resort_s`` of one episode: [s] the time ``t`` of
+    its first step whose stage (``took_over``'s, per step) reached the fallback, and the last
+    resort; None if none did (or there are no stages: an unsupervised controller)."""
+    out: dict[str, float | None] = {}
+    for key, stage in (("fallback_s", FALLBACK), ("last_resort_s", LAST_RESORT)):
+        hit = np.array([], dtype=int) if stages is None else np.flatnonzero(
+            np.asarray(stages) >= stage)
+        out[key] = None if hit.size == 0 else float(t[hit[0]])
+    return out
