@@ -23,6 +23,7 @@ from mpa_gym.design.feedforward import (
     StiffnessEnvelope,
 )
 from mpa_gym.design.reference import MODES, FlexorPattern, Reference, mode_pattern
+from mpa_gym.configs import RIG_DIR, SCENARIO_DIR
 from mpa_gym.files import read_yaml
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 
@@ -466,12 +467,12 @@ def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
 
 
 def scenario_dirs() -> list[Path]:
-    """Where named scenarios are looked up: $MPA_GYM_SCENARIOS, then the repo's configs/."""
+    """Where named scenarios are looked up: $MPA_GYM_SCENARIOS, then the shipped scenarios and
+    rigs (``mpa_gym.configs``: ``scenarios/``, ``rigs/``)."""
     dirs = []
     if os.environ.get(SCENARIO_DIR_ENV):
         dirs.append(Path(os.environ[SCENARIO_DIR_ENV]))
-    dirs.append(Path(__file__).resolve().parents[2] / "configs" / "scenarios")
-    return dirs
+    return [*dirs, SCENARIO_DIR, RIG_DIR]
 
 
 def scenario_names() -> list[str]:
@@ -480,7 +481,7 @@ def scenario_names() -> list[str]:
 
 
 def load_scenario(spec: str | os.PathLike[str] | dict[str, Any] | Scenario) -> Scenario:
-    """A Scenario from a name in configs/scenarios, a YAML path, a dict or a Scenario."""
+    """A Scenario from a name (:func:`scenario_names`), a YAML path, a dict or a Scenario."""
     if isinstance(spec, Scenario):
         return spec
     if isinstance(spec, dict):
