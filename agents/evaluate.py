@@ -28,187 +28,23 @@ import math
 import os
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
 import mpa_gym  # noqa: F401
 from agents.baselines import BASELINES, Policy, stack
 from agents.config import EVAL_SEED
+from agents.episodes import RECOVERY_BAND_M, Job, Trace, metrics, run_episode, run_episodes
 from agents.policies import load_policy
 from agents.seeds import group_runs, require_stats
-from agents.supervisor import take_over_times, took_over
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
-from mpa_gym.task.contract import SAFETY_CLIPPED
 
 PAPER_SCENARIOS = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch",
                    "load_1kg", "kmax", "kmin"]
 HELDOUT_SCENARIOS = ["heldout_a", "heldout_b", "heldout_c", "heldout_bladder"]
-RECOVERY_BAND_M = 1e-3
-
-
-@dataclass
-class Trace:
-    """One evaluated episode, per step (after each step)."""
-
-    t: np.ndarray  # [s]
-    x: np.ndarray  # [m]
-    x_ref: np.ndarray  # [m]
-    k: np.ndarray  # [N/m]
-    k_ref: np.ndarray  # [N/m]
-    pressure_bar: np.ndarray  # (n, 2)
-    pressure_cmd_bar: np.ndarray  # (n, 2)
-    clipped: np.ndarray  # bool
-    rewards: np.ndarray
-    terminated: bool
-    fallback: np.ndarray | None = None  # per step, a supervisor's stage (``took_over``)
-
-
-def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any] | None = None
-                ) -> Trace:
-    """Roll ``policy`` out for one episode of ``env`` (deterministic actions)."""
-    obs, info = env.reset(seed=seed, options=options)
-    state, start = None, np.array([True])
-    rows: list[tuple[Any, ...]] = []
-    rewards = []
-    fallback: list[int] = []
-    terminated = False
-    while True:
-        action, state = policy.predict(obs, state, start, deterministic=True)
-        if (flags := took_over(policy, state)) is not None:
-            fallback.append(int(flags[0]))
-        start = np.array([False])
-        obs, r, terminated, truncated, info = env.step(action)
-        rows.append((info["t_s"], info["x_m"], info["x_ref_m"], info["k_N_per_m"],
-                     info["k_ref_N_per_m"], info["pressure_bar"].copy(),
-                     info["pressure_cmd_bar"].copy(), bool(info["safety"] & SAFETY_CLIPPED)))
-        rewards.append(r)
-        if terminated or truncated:
-            break
-    cols = list(zip(*rows, strict=True))
-    return Trace(np.array(cols[0]), np.array(cols[1]), np.array(cols[2]), np.array(cols[3]),
-                 np.array(cols[4]), np.array(cols[5]), np.array(cols[6]), np.array(cols[7]),
-                 np.array(rewards), bool(terminated), np.array(fallback) if fallback else None)
-
-
-@dataclass
-class Job:
-    """One evaluation episode: ``policy`` on ``scenario`` in env ``env_id`` with ``task``."""
-
-    scenario: Any  # a loaded Scenario
-    policy: Policy
-    env_id: str
-    task: dict[str, Any]
-
-
-def run_batch(jobs: list[Job], seed: int) -> list[Trace]:
-    """Every job's episode at once, each exactly as :func:`run_episode` runs it alone.
-
-    Jobs of one (scenario, env, task) share a native vector env, one row each, every row reset
-    with the same episode seed (so row i is the single env reset with ``seed``); all the vector
-    envs step together, and each policy is called once per step with the observations of all
-    its rows (a learned policy evaluated on every scenario of a report is one batched forward
-    pass per step). A row is recorded until its episode ends; its autoreset is ignored.
-    """
-    groups: dict[tuple[int, str, str], list[int]] = {}
-    for i, j in enumerate(jobs):
-        key = (id(j.scenario), j.env_id, json.dumps(j.task, sort_keys=True, default=str))
-        groups.setdefault(key, []).append(i)
-    envs, rows_of = [], []  # per group: vector env, job indices
-    obs_of: list[np.ndarray] = []
-    for (_, env_id, _), idx in groups.items():
-        j0 = jobs[idx[0]]
-        venv = gym.make_vec(env_id, num_envs=len(idx), vectorization_mode="vector_entry_point",
-                            scenario=j0.scenario, task=j0.task)
-        obs, _ = venv.reset(seed=[seed] * len(idx))
-        envs.append(venv)
-        rows_of.append(idx)
-        obs_of.append(obs)
-    # where each job sits: (group, row); each policy object's jobs, in a fixed order
-    where = {i: (g, r) for g, idx in enumerate(rows_of) for r, i in enumerate(idx)}
-    by_policy: dict[int, list[int]] = {}
-    for i, j in enumerate(jobs):
-        by_policy.setdefault(id(j.policy), []).append(i)
-    states: dict[int, Any] = dict.fromkeys(by_policy)
-    n = len(jobs)
-    act_dim = envs[0].single_action_space.shape[0]
-    actions = [np.zeros((len(idx), act_dim), dtype=np.float32) for idx in rows_of]
-    live = np.ones(n, dtype=bool)
-    cols: list[list[Any]] = [[] for _ in range(n)]
-    rewards: list[list[float]] = [[] for _ in range(n)]
-    fallback: list[list[int]] = [[] for _ in range(n)]
-    terminated = np.zeros(n, dtype=bool)
-    first = True
-    while live.any():
-        for pid, idx in by_policy.items():
-            batch = np.stack([obs_of[where[i][0]][where[i][1]] for i in idx])
-            start = np.full(len(idx), first)
-            a, states[pid] = jobs[idx[0]].policy.predict(batch, states[pid], start,
-                                                         deterministic=True)
-            flags = took_over(jobs[idx[0]].policy, states[pid])
-            for k, i in enumerate(idx):
-                g, r = where[i]
-                actions[g][r] = a[k]
-                if flags is not None and live[i]:
-                    fallback[i].append(int(flags[k]))
-        first = False
-        for g, venv in enumerate(envs):
-            obs, rew, term, trunc, info = venv.step(actions[g])
-            obs_of[g] = obs
-            done = term | trunc
-            last = info.get("final_info", info)
-            for r, i in enumerate(rows_of[g]):
-                if not live[i]:
-                    continue
-                src = last if done[r] else info
-                cols[i].append((src["t_s"][r], src["x_m"][r], src["x_ref_m"][r],
-                                src["k_N_per_m"][r], src["k_ref_N_per_m"][r],
-                                src["pressure_bar"][r].copy(), src["pressure_cmd_bar"][r].copy(),
-                                bool(src["safety"][r] & SAFETY_CLIPPED)))
-                rewards[i].append(rew[r])
-                if done[r]:
-                    live[i] = False
-                    terminated[i] = bool(term[r])
-    for venv in envs:
-        venv.close()
-    out = []
-    for i in range(n):
-        c = list(zip(*cols[i], strict=True))
-        out.append(Trace(np.array(c[0]), np.array(c[1]), np.array(c[2]), np.array(c[3]),
-                         np.array(c[4]), np.array(c[5]), np.array(c[6]), np.array(c[7]),
-                         np.array(rewards[i]), bool(terminated[i]),
-                         np.array(fallback[i]) if fallback[i] else None))
-    return out
-
-
-def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
-    w = trace.t >= trace.t[-1] - 3 * period_s - 1e-9
-    e = trace.x - trace.x_ref
-    ek = (trace.k - trace.k_ref) / trace.k_ref
-    recovery: float | None = None
-    if impulse_end_s is not None:
-        after = trace.t >= impulse_end_s - 1e-9
-        outside = np.flatnonzero(np.abs(e[after]) >= RECOVERY_BAND_M)
-        if outside.size == 0:
-            recovery = 0.0
-        elif outside[-1] == after.sum() - 1:
-            recovery = math.inf
-        else:
-            recovery = float(trace.t[after][outside[-1] + 1] - impulse_end_s)
-    return {
-        "position_rmse_mm": float(np.sqrt(np.mean(e[w] ** 2)) * 1e3),
-        "position_max_mm": float(np.max(np.abs(e[w])) * 1e3),
-        "stiffness_rmse_pct": float(np.sqrt(np.mean(ek[w] ** 2)) * 100),
-        "saturation_pct": float(np.mean(trace.clipped) * 100),
-        "recovery_s": recovery,
-        "return": float(trace.rewards.sum()),
-        "terminated": trace.terminated,
-        **take_over_times(trace.t, trace.fallback),
-    }
 
 
 def eval_task(run_cfg: Any = None) -> dict[str, Any]:
@@ -229,10 +65,10 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
     the robustness sweep if ``robustness``.
 
-    All episodes run as one batch (:func:`run_batch`); ``batched=False`` runs them one after
-    another (:func:`run_episode`), with the same numbers. ``plots_dir``: the scenario plots
-    (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
-    :func:`write_report` after it (``report["plots"]``)."""
+    All episodes run as one batch (``agents.episodes.run_episodes``); ``batched=False`` runs
+    them one after another (``agents.episodes.run_episode``), with the same numbers.
+    ``plots_dir``: the scenario plots (:func:`plot`) are drawn there while the sweep's worker
+    finishes, rather than by :func:`write_report` after it (``report["plots"]``)."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
@@ -285,7 +121,7 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
             jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
             keys.append((sc, _label(spec)))
     if batched:
-        trs = run_batch(jobs, seed)
+        trs = run_episodes(jobs, seed)
     else:
         trs = []
         for j in jobs:

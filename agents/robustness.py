@@ -29,24 +29,22 @@ feedforward's is.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import numpy as np
 
 from agents.baselines import Policy
 from agents.config import EVAL_SEED
+from agents.episodes import METRIC_PERIODS, Job, metric_window, recovery_s, run_episodes
 from agents.evaluate import eval_task
 from agents.policies import load_policy
-from agents.supervisor import take_over_times, took_over
+from agents.supervisor import take_over_times
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
-METRIC_PERIODS = 3
 
 
 @dataclass(frozen=True)
@@ -118,66 +116,36 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
 
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
                 seed: int) -> list[dict[str, np.ndarray]]:
-    """:func:`run_batch` for several controllers at once, each on every plant. Controllers
-    that run in the same env (id and task settings) share one vector env, a block of legs
-    each, so a step of the sweep is one engine call per env rather than per controller; leg j
-    of every block is reset with seed ``seed + j``, as the single batch seeds it."""
-    loaded = []
+    """:func:`run_batch` for several controllers at once, each on every plant, as one call of
+    ``agents.episodes.run_episodes``: controllers that run in the same env (id and task
+    settings) share one vector env, a block of legs each, so a step of the sweep is one engine
+    call per env rather than per controller; leg j of every block is reset with seed
+    ``seed + j``, as the single batch seeds it."""
+    jobs = []
     for spec in specs:
         if isinstance(spec, str):
             policy, env_id, run_cfg = load_policy(spec, {"scenario": sc})
         else:
             policy, env_id, run_cfg = spec, "MPALegResidual-v0", None
-        loaded.append((policy, env_id, eval_task(run_cfg)))
-    groups: dict[tuple[str, str], list[int]] = {}  # (env id, task) -> controllers
-    for c, (_, env_id, task) in enumerate(loaded):
-        groups.setdefault((env_id, json.dumps(task, sort_keys=True, default=str)), []).append(c)
+        task = eval_task(run_cfg)
+        jobs += [Job(sc, policy, env_id, task, plant=p, seed=seed + j)
+                 for j, p in enumerate(plants)]
+    traces = run_episodes(jobs, seed)
     n = len(plants)
-    out: list[dict[str, np.ndarray]] = [{} for _ in specs]
-    for (env_id, _), members in groups.items():
-        m = len(members)
-        venv = gym.make_vec(env_id, num_envs=m * n, vectorization_mode="vector_entry_point",
-                            scenario=sc, task=loaded[members[0]][2])
-        try:
-            obs, _ = venv.reset(seed=[seed + j for _ in members for j in range(n)],
-                                options={"plant": plants * m})
-            steps = venv.unwrapped.engine.plan.n_steps
-            dt = venv.unwrapped.cfg.dt_s
-            x = np.full((steps, m * n), np.nan)
-            xr = np.full((steps, m * n), np.nan)
-            dead = np.zeros(m * n, dtype=bool)
-            fb = np.zeros((steps, m * n), dtype=np.int8)  # the supervisor's stage at the step
-            states: list[Any] = [None] * m
-            start = np.ones(n, dtype=bool)
-            action = np.zeros((m * n, *venv.single_action_space.shape))
-            rows_run = steps
-            for k in range(steps):
-                for b, c in enumerate(members):
-                    a, states[b] = loaded[c][0].predict(obs[b * n:(b + 1) * n], states[b], start,
-                                                        deterministic=True)
-                    action[b * n:(b + 1) * n] = a
-                    if (flags := took_over(loaded[c][0], states[b])) is not None:
-                        fb[k, b * n:(b + 1) * n] = np.where(dead[b * n:(b + 1) * n], 0, flags)
-                start = np.zeros(n, dtype=bool)
-                obs, _, term, trunc, info = venv.step(action)
-                xk, xrk = info["x_m"].copy(), info["x_ref_m"].copy()
-                if "final_info" in info:  # same-step autoreset: the finished step is there
-                    f = info["_final_info"]
-                    xk[f] = info["final_info"]["x_m"][f]
-                    xrk[f] = info["final_info"]["x_ref_m"][f]
-                live = ~dead
-                x[k, live], xr[k, live] = xk[live], xrk[live]
-                dead |= term
-                if np.all(term | trunc | dead):
-                    rows_run = k + 1
-                    break
-        finally:
-            venv.close()
-        for b, c in enumerate(members):
-            legs = slice(b * n, (b + 1) * n)
-            out[c] = {"t": dt * np.arange(1, rows_run + 1), "x": x[:rows_run, legs],
-                      "x_ref": xr[:rows_run, legs], "terminated": dead[legs],
-                      "fallback": fb[:rows_run, legs]}
+    steps = max(len(tr.t) for tr in traces)
+    dt = float(traces[0].t[0])
+    out = []
+    for c in range(len(specs)):
+        mine = traces[c * n:(c + 1) * n]
+        x = np.full((steps, n), np.nan)
+        xr = np.full((steps, n), np.nan)
+        fb = np.zeros((steps, n), dtype=np.int8)  # the supervisor's stage at the step
+        for j, tr in enumerate(mine):
+            x[:len(tr.t), j], xr[:len(tr.t), j] = tr.x, tr.x_ref
+            if tr.fallback is not None:
+                fb[:len(tr.t), j] = tr.fallback
+        out.append({"t": dt * np.arange(1, steps + 1), "x": x, "x_ref": xr,
+                    "terminated": np.array([tr.terminated for tr in mine]), "fallback": fb})
     return out
 
 
@@ -192,29 +160,13 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
                         "terminated": bool(run["terminated"][i]), **took})
             continue
-        w = e[-METRIC_PERIODS * per:, i].reshape(METRIC_PERIODS, per)
+        w = e[metric_window(e.shape[0], per), i].reshape(METRIC_PERIODS, per)
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
                     "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
                     "terminated": False, **took})
     return out
-
-
-def recovery_s(run: dict[str, np.ndarray], i: int, t_end: float, band_m: float = 1e-3
-               ) -> float | None:
-    """[s] after ``t_end``, until |X − X̂| of leg i stays below ``band_m`` (inf: never)."""
-    if run["terminated"][i]:
-        return None
-    t = run["t"]
-    e = np.abs(run["x"][:, i] - run["x_ref"][:, i])
-    after = t >= t_end - 1e-9
-    outside = np.flatnonzero(e[after] >= band_m)
-    if outside.size == 0:
-        return 0.0
-    if outside[-1] == after.sum() - 1:
-        return math.inf
-    return float(t[after][outside[-1] + 1] - t_end)
 
 
 def training_ranges(spec: str) -> dict[str, tuple[float, float]] | None:
@@ -287,7 +239,8 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
         for p, run in zip(policies, run_batches(policies, sc, plants, seed), strict=True):
             m = cell_metrics(run, period, float(run["t"][0]))
             for i, n in enumerate(names):
-                m[i]["recovery_s"] = recovery_s(run, i, kick.t_s + kick.duration_s)
+                m[i]["recovery_s"] = (None if run["terminated"][i] else recovery_s(
+                    run["t"], run["x"][:, i] - run["x_ref"][:, i], kick.t_s + kick.duration_s))
                 m[i]["held_out"] = held_out(plants[i], ranges[p])
                 out[key].setdefault(n, {})[labels[p]] = m[i]
     return out

@@ -34,7 +34,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from agents.evaluate import Trace, metrics
+from agents.episodes import Trace, metrics
 from agents.policies import load_policy
 from agents.supervisor import FALLBACK, POLICY, took_over
 from mpa_gym.hardware.env import (

@@ -57,7 +57,8 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
 from agents.anchor import RestObservation, rest_for_save
 from agents.config import DEFAULT_CONFIG, ConfigError, TrainConfig, load_config, parse_config
-from agents.evaluate import Job, eval_task, metrics, run_batch
+from agents.episodes import Job, metrics, run_episodes
+from agents.evaluate import eval_task
 from agents.policies import LearnedPolicy
 from agents.worker import Worker, WorkerStopped
 from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
@@ -120,10 +121,10 @@ class TrackingMetrics(BaseCallback):
 def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normalizer: Any
                      ) -> list[tuple[dict[str, Any], int]]:
     """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario:
-    all at once, one batched policy call per step (``agents.evaluate.run_batch``)."""
+    all at once, one batched policy call per step (``agents.episodes.run_episodes``)."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
     task = eval_task(cfg)
-    traces = run_batch([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
+    traces = run_episodes([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
     return [(metrics(tr, sc.reference.period, None), len(tr.t))
             for sc, tr in zip(scenarios, traces, strict=True)]
 

@@ -14,7 +14,8 @@ import yaml
 import mpa_gym  # noqa: F401
 from agents.baselines import make_baseline
 from agents.config import ConfigError, load_config, parse_config
-from agents.evaluate import evaluate, metrics, run_episode, write_report
+from agents.episodes import metrics, run_episode
+from agents.evaluate import evaluate, write_report
 from agents.policies import load_run
 from agents.train import train
 from agents.wrappers import (

@@ -10,7 +10,7 @@ import yaml
 import mpa_gym  # noqa: F401
 from agents.anchor import RestAnchoredPolicy, set_rest
 from agents.config import ConfigError, parse_config
-from agents.evaluate import Job, run_batch
+from agents.episodes import Job, run_episodes
 from agents.inference import DeployedPolicy
 from agents.policies import LearnedPolicy, load_policy, load_run
 from agents.train import train
@@ -120,7 +120,7 @@ def test_anchored_policy_keeps_the_feedforward_where_it_is_exact():
     ff = load_policy("ff")[0]
     jobs = [Job(sc, p, "MPALegResidual-v0", task)
             for p in (ff, _policy(True, 2), _policy(False, 2))]
-    ff_trace, anchored, plain = run_batch(jobs, seed=0)
+    ff_trace, anchored, plain = run_episodes(jobs, seed=0)
     assert np.max(np.abs(anchored.x - ff_trace.x)) < 1e-6
     assert np.max(np.abs(plain.x - ff_trace.x)) > 1e-4
 

@@ -12,7 +12,8 @@ from numpy.testing import assert_allclose
 
 import mpa_gym  # noqa: F401
 from agents.baselines import make_baseline
-from agents.evaluate import evaluate, metrics, run_episode, write_report
+from agents.episodes import metrics, run_episode
+from agents.evaluate import evaluate, write_report
 from agents.robustness import (
     Grid,
     _scenario,

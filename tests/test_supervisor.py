@@ -299,10 +299,10 @@ def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():
     pid = make_baseline("pid", "nominal")
     sup = Supervised(pid, Constant(1.0), DT, T)
     rep = evaluate(["pid"], scen)["results"]
-    from agents.evaluate import Job, metrics, run_batch
+    from agents.episodes import Job, metrics, run_episodes
 
     jobs = [Job(load_scenario(s), sup, "MPALegResidual-v0", {}) for s in scen]
-    for s, tr in zip(scen, run_batch(jobs, 1_000_000), strict=True):
+    for s, tr in zip(scen, run_episodes(jobs, 1_000_000), strict=True):
         assert tr.fallback is not None and not tr.fallback.any()
         m = metrics(tr, T, None)
         assert m["fallback_s"] is None

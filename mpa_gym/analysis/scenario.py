@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from mpa_gym.configs import RIG_DIR, SCENARIO_DIR
 from mpa_gym.design.feedforward import (
     P_MAX_DEFAULT,
     ConstantStiffness,
@@ -23,7 +24,6 @@ from mpa_gym.design.feedforward import (
     StiffnessEnvelope,
 )
 from mpa_gym.design.reference import MODES, FlexorPattern, Reference, mode_pattern
-from mpa_gym.configs import RIG_DIR, SCENARIO_DIR
 from mpa_gym.files import read_yaml
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 

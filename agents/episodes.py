@@ -1,0 +1,225 @@
+"""The episode runner and the metric window: one for evaluation reports, the robustness sweep,
+held-out evaluations during training, baseline tuning and single episodes.
+
+:func:`run_episodes` runs a list of :class:`Job` s (a controller on a scenario, with an optional
+plant of its own and an episode seed) at once. Jobs of one (scenario, env id, task) share a
+native vector env, one row each, every row reset with its job's seed (so row i is the single
+env reset with that seed) and, where a job has a plant, with it (``reset(options={"plant":
+[dict per row]})``). All the vector envs step together, and each controller object is called
+once per step with the observations of all its rows (a learned policy evaluated on every
+scenario of a report is one batched forward pass per step). A row is recorded until its episode
+ends; its autoreset is ignored. :func:`run_episode` runs one episode of a given single env
+through the same loop (the env as a batch of one row), so a single episode and a batch row are
+the same code path, and the check that they agree tests the vector env against the single one.
+
+Metrics are taken over the last ``METRIC_PERIODS`` reference periods of an episode
+(:func:`metric_window`), for every report.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from agents.baselines import Policy
+from agents.supervisor import take_over_times, took_over
+from mpa_gym.task.contract import SAFETY_CLIPPED
+
+METRIC_PERIODS = 3  # metrics are taken over the last three reference periods of an episode
+RECOVERY_BAND_M = 1e-3  # [m] recovered: |X − X̂| stays below this
+# the per-step info fields a Trace keeps: Trace field -> info key
+_RECORDED = {"t": "t_s", "x": "x_m", "x_ref": "x_ref_m", "k": "k_N_per_m",
+             "k_ref": "k_ref_N_per_m", "pressure_bar": "pressure_bar",
+             "pressure_cmd_bar": "pressure_cmd_bar", "safety": "safety"}
+
+
+def metric_window(n_steps: int, steps_per_period: int) -> slice:
+    """The samples metrics are taken over: the last ``METRIC_PERIODS`` periods of ``n_steps``
+    (all of them if the episode is shorter)."""
+    return slice(max(0, n_steps - METRIC_PERIODS * steps_per_period), n_steps)
+
+
+def recovery_s(t: np.ndarray, err: np.ndarray, t_end: float, band_m: float = RECOVERY_BAND_M
+               ) -> float:
+    """[s] after ``t_end`` (a disturbance's end), until |``err``| stays below ``band_m``
+    (inf: it never does)."""
+    after = t >= t_end - 1e-9
+    outside = np.flatnonzero(np.abs(err[after]) >= band_m)
+    if outside.size == 0:
+        return 0.0
+    if outside[-1] == after.sum() - 1:
+        return math.inf
+    return float(t[after][outside[-1] + 1] - t_end)
+
+
+@dataclass
+class Trace:
+    """One episode, per step (after each step)."""
+
+    t: np.ndarray  # [s]
+    x: np.ndarray  # [m]
+    x_ref: np.ndarray  # [m]
+    k: np.ndarray  # [N/m]
+    k_ref: np.ndarray  # [N/m]
+    pressure_bar: np.ndarray  # (n, 2)
+    pressure_cmd_bar: np.ndarray  # (n, 2)
+    clipped: np.ndarray  # bool
+    rewards: np.ndarray
+    terminated: bool
+    fallback: np.ndarray | None = None  # per step, a supervisor's stage (``took_over``)
+
+
+@dataclass
+class Job:
+    """One episode: ``policy`` on ``scenario`` in env ``env_id`` with ``task``; ``plant``: plant
+    fields of this episode's own (``reset(options={"plant": ...})``); ``seed``: its episode
+    seed (None: the batch's)."""
+
+    scenario: Any  # a loaded Scenario
+    policy: Policy
+    env_id: str
+    task: dict[str, Any]
+    plant: dict[str, Any] | None = None
+    seed: int | None = None
+
+
+class _OneRow:
+    """A single env as a vector env of one row (the runner's view of :func:`run_episode`)."""
+
+    def __init__(self, env: gym.Env, options: dict[str, Any] | None) -> None:
+        self.env, self.options = env, options
+
+    def reset(self, seed: list[int], options: Any = None) -> tuple[np.ndarray, dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed[0], options=self.options)
+        return obs[None], info
+
+    def step(self, actions: np.ndarray) -> tuple[Any, ...]:
+        obs, r, term, trunc, info = self.env.step(actions[0])
+        return (obs[None], np.array([r]), np.array([term]), np.array([trunc]),
+                {k: np.asarray([v]) for k, v in info.items()})
+
+    def close(self) -> None:
+        """The caller's env stays open."""
+
+
+def run_episodes(jobs: list[Job], seed: int) -> list[Trace]:
+    """Every job's episode at once (module docstring); ``seed`` for jobs without their own."""
+    groups: dict[tuple[int, str, str], list[int]] = {}
+    for i, j in enumerate(jobs):
+        key = (id(j.scenario), j.env_id, json.dumps(j.task, sort_keys=True, default=str))
+        groups.setdefault(key, []).append(i)
+    envs = []
+    for (_, env_id, _), idx in groups.items():
+        j0 = jobs[idx[0]]
+        envs.append(gym.make_vec(env_id, num_envs=len(idx), vectorization_mode="vector_entry_point",
+                                 scenario=j0.scenario, task=j0.task))
+    return _run(jobs, list(groups.values()), envs, seed)
+
+
+def run_episode(env: gym.Env, policy: Policy, seed: int, options: dict[str, Any] | None = None
+                ) -> Trace:
+    """One episode of ``policy`` on the single env ``env`` (deterministic actions), through
+    :func:`run_episodes`' loop."""
+    job = Job(None, policy, "", {})
+    return _run([job], [[0]], [_OneRow(env, options)], seed)[0]
+
+
+def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) -> list[Trace]:
+    """The loop: ``envs[g]`` runs the jobs ``rows_of[g]``, one row each."""
+    obs_of: list[np.ndarray] = []
+    try:
+        for venv, idx in zip(envs, rows_of, strict=True):
+            plants = [jobs[i].plant for i in idx]
+            options = ({"plant": [p or {} for p in plants]}
+                       if any(p is not None for p in plants) else None)
+            obs, _ = venv.reset(seed=[seed if jobs[i].seed is None else jobs[i].seed
+                                      for i in idx], options=options)
+            obs_of.append(obs)
+        # where each job sits: (group, row); each policy object's jobs, in a fixed order
+        where = {i: (g, r) for g, idx in enumerate(rows_of) for r, i in enumerate(idx)}
+        by_policy: dict[int, list[int]] = {}
+        for i, j in enumerate(jobs):
+            by_policy.setdefault(id(j.policy), []).append(i)
+        states: dict[int, Any] = dict.fromkeys(by_policy)
+        n = len(jobs)
+        actions = [np.zeros((len(idx), 2), dtype=np.float32) for idx in rows_of]
+        live = np.ones(n, dtype=bool)
+        length = np.zeros(n, dtype=np.int64)  # steps recorded per job
+        terminated = np.zeros(n, dtype=bool)
+        stage = np.zeros(n, dtype=np.int8)
+        steps: list[list[dict[str, np.ndarray]]] = [[] for _ in envs]  # per group, per step
+        rewards: list[list[np.ndarray]] = [[] for _ in envs]
+        stages: list[np.ndarray] = []  # per step, every job's supervisor stage
+        supervised = np.zeros(n, dtype=bool)
+        first = True
+        while live.any():
+            for pid, idx in by_policy.items():
+                batch = np.stack([obs_of[where[i][0]][where[i][1]] for i in idx])
+                start = np.full(len(idx), first)
+                policy = jobs[idx[0]].policy
+                a, states[pid] = policy.predict(batch, states[pid], start, deterministic=True)
+                flags = took_over(policy, states[pid])
+                for k, i in enumerate(idx):
+                    g, r = where[i]
+                    actions[g][r] = a[k]
+                if flags is not None:
+                    stage[idx] = flags
+                    supervised[idx] = True
+            stages.append(stage.copy())
+            first = False
+            for g, venv in enumerate(envs):
+                obs, rew, term, trunc, info = venv.step(actions[g])
+                obs_of[g] = obs
+                done = term | trunc
+                rec = {k: np.array(info[key]) for k, key in _RECORDED.items()}
+                if "final_info" in info:  # a same-step autoreset: the finished step is there
+                    f = info["_final_info"]
+                    for k, key in _RECORDED.items():
+                        rec[k][f] = info["final_info"][key][f]
+                steps[g].append(rec)
+                rewards[g].append(np.asarray(rew))
+                idx = np.asarray(rows_of[g])
+                on = live[idx]
+                length[idx[on]] += 1
+                ended = on & done
+                terminated[idx[ended]] = term[ended]
+                live[idx[ended]] = False
+    finally:
+        for venv in envs:
+            venv.close()
+    out: list[Trace] = [None] * len(jobs)  # type: ignore[list-item]
+    all_stages = np.stack(stages)
+    for g, idx in enumerate(rows_of):
+        cols = {k: np.stack([s[k] for s in steps[g]]) for k in _RECORDED}
+        rew = np.stack(rewards[g])
+        for r, i in enumerate(idx):
+            m = length[i]
+            c = {k: v[:m, r] for k, v in cols.items()}
+            out[i] = Trace(c["t"].astype(float), c["x"].astype(float), c["x_ref"].astype(float),
+                           c["k"].astype(float), c["k_ref"].astype(float), c["pressure_bar"],
+                           c["pressure_cmd_bar"], (c["safety"] & SAFETY_CLIPPED) > 0,
+                           rew[:m, r], bool(terminated[i]),
+                           all_stages[:m, i].astype(np.int64) if supervised[i] else None)
+    return out
+
+
+def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
+    """An episode's figures (``agents.evaluate``'s module docstring)."""
+    w = trace.t >= trace.t[-1] - METRIC_PERIODS * period_s - 1e-9
+    e = trace.x - trace.x_ref
+    ek = (trace.k - trace.k_ref) / trace.k_ref
+    return {
+        "position_rmse_mm": float(np.sqrt(np.mean(e[w] ** 2)) * 1e3),
+        "position_max_mm": float(np.max(np.abs(e[w])) * 1e3),
+        "stiffness_rmse_pct": float(np.sqrt(np.mean(ek[w] ** 2)) * 100),
+        "saturation_pct": float(np.mean(trace.clipped) * 100),
+        "recovery_s": None if impulse_end_s is None else recovery_s(trace.t, e, impulse_end_s),
+        "return": float(trace.rewards.sum()),
+        "terminated": trace.terminated,
+        **take_over_times(trace.t, trace.fallback),
+    }
