@@ -38,6 +38,7 @@ from typing import Any
 
 import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.files import read_yaml
+from mpa_gym.model.params import check_keys
 
 ZOO_KEYS = {"n_envs", "n_timesteps", "policy", "normalize", "policy_kwargs", "env_kwargs",
             "env_wrapper"}
@@ -293,10 +294,7 @@ def _check_normalize(norm: Any, where: str) -> None:
 def _check_policy_kwargs(pk: Any, where: str) -> None:
     if not isinstance(pk, dict):
         raise ConfigError(f"{where}={pk!r} must be a dict")
-    unknown = sorted(set(pk) - set(POLICY_KWARGS))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; allowed keys are "
-                          f"{list(POLICY_KWARGS)}")
+    check_keys(where, pk, POLICY_KWARGS, ConfigError)
     if "net_arch" in pk:
         arch = pk["net_arch"]
         layers = ({k: arch.get(k) for k in arch} if isinstance(arch, dict) else {"": arch})
@@ -330,10 +328,7 @@ def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str) -> None:
         raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")
     check = FeatureSpec if name == OBS_WRAPPER else ActionSpec
     allowed = [f.name for f in dataclasses.fields(check)]
-    unknown = sorted(set(kwargs) - set(allowed))
-    if unknown:
-        raise ConfigError(f"{where}: {name}: unknown key(s) {unknown}; allowed keys are "
-                          f"{list(allowed)}")
+    check_keys(f"{where}: {name}", kwargs, allowed, ConfigError)
     try:
         check(**kwargs)
     except ValueError as e:
@@ -358,10 +353,7 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
     hp = data[env_id]
     if not isinstance(hp, dict):
         raise ConfigError(f"{source}: {env_id} must be a mapping of hyper-parameters")
-    unknown = sorted(set(hp) - ZOO_KEYS - PPO_KEYS, key=str)
-    if unknown:
-        raise ConfigError(f"{source}: {env_id}: unknown key(s) {unknown}; allowed keys are "
-                          f"{sorted(ZOO_KEYS | PPO_KEYS)}")
+    check_keys(f"{source}: {env_id}", hp, ZOO_KEYS | PPO_KEYS, ConfigError)
     for req in ("n_timesteps", "policy"):
         if req not in hp:
             raise ConfigError(f"{source}: {env_id}: missing required key {req!r}")
@@ -382,10 +374,10 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
         pk = _literal(pk, f"{where}.policy_kwargs")
     wrappers = _wrappers(hp.get("env_wrapper"), f"{where}.env_wrapper")
     h = data.get("mpa_gym") or {}
-    if not isinstance(h, dict) or set(h) - HARNESS_KEYS:
-        bad = sorted(set(h) - HARNESS_KEYS, key=str) if isinstance(h, dict) else h
-        raise ConfigError(f"{source}: mpa_gym: unknown key(s) {bad!r}; allowed keys are "
+    if not isinstance(h, dict):
+        raise ConfigError(f"{source}: mpa_gym={h!r} must be a mapping with the keys "
                           f"{sorted(HARNESS_KEYS)}")
+    check_keys(f"{source}: mpa_gym", h, HARNESS_KEYS, ConfigError)
     # tune (the search space) is read from ``raw`` by agents.tune, which validates it
     harness = {k: v for k, v in h.items() if k not in ("eval_scenarios", "tune")}
     if h.get("eval_scenarios") is not None:

@@ -25,7 +25,14 @@ from mpa_gym.design.feedforward import (
 )
 from mpa_gym.design.reference import MODES, FlexorPattern, Reference, mode_pattern
 from mpa_gym.files import read_yaml
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
+from mpa_gym.model.params import (
+    BAR,
+    DEFAULT_PARAMS,
+    Params,
+    RegulatorParams,
+    check_keys,
+    check_range,
+)
 
 SCENARIO_DIR_ENV = "MPA_GYM_SCENARIOS"
 
@@ -181,7 +188,7 @@ def check_plant_value(key: str, value: Any, where: str = "plant") -> float:
     allowed range."""
     rng = {**PLANT_RANGES, **EPISODE_FIELDS}
     if key not in rng:
-        raise ScenarioError(f"{where}: unknown key {key!r}; allowed keys are {sorted(rng)}")
+        check_keys(where, [key], rng, ScenarioError)
     lo, hi, lo_open, unit = rng[key]
     if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
         raise ScenarioError(f"{where}.{key}={value!r} must be a number")
@@ -211,9 +218,7 @@ class Randomization:
             if not (isinstance(entry, tuple | list) and len(entry) == 3):
                 raise ScenarioError(f"randomize: {entry!r} must be a (field, low, high) triple")
             k, lo, hi = entry
-            if k not in RANDOMIZABLE and k not in EPISODE_FIELDS:
-                raise ScenarioError(f"randomize: unknown key(s) [{k!r}]; allowed keys are "
-                                    f"{sorted({*RANDOMIZABLE, *EPISODE_FIELDS})}")
+            check_keys("randomize", [k], {*RANDOMIZABLE, *EPISODE_FIELDS}, ScenarioError)
             lo = check_plant_value(k, lo, "randomize")
             hi = check_plant_value(k, hi, "randomize")
             if lo > hi:
@@ -376,10 +381,7 @@ def _section(d: Any, where: str, allowed: set[str], required: set[str] = frozens
         d = {}
     if not isinstance(d, dict):
         raise ScenarioError(f"{where} must be a mapping, got {type(d).__name__}: {d!r}")
-    unknown = sorted(set(d) - allowed)
-    if unknown:
-        raise ScenarioError(
-            f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
+    check_keys(where, d, allowed, ScenarioError)
     missing = sorted(required - set(d))
     if missing:
         raise ScenarioError(f"{where}: missing required key(s) {missing}")

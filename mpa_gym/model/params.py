@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import math
 import numbers
+from collections.abc import Iterable
 from dataclasses import dataclass, field, fields
 from functools import cached_property
+from typing import Any
 
 BAR = 1.0e5  # [Pa] one bar; pressures are shown in bar at the edges only
 
@@ -44,6 +46,15 @@ def check_range(
     if too_low or too_high:
         raise ValueError(f"{name}={x:g}{unit_s} is outside the allowed range {allowed}")
     return x
+
+
+def check_keys(where: str, keys: Iterable[Any], allowed: Iterable[str],
+               error: type[Exception] = ValueError) -> None:
+    """Raise ``error`` naming the keys of ``keys`` (a mapping's) that are not ``allowed``, and
+    the allowed ones: the one check of a config section's keys."""
+    unknown = sorted(set(keys) - set(allowed), key=str)
+    if unknown:
+        raise error(f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
 
 
 def _positive(obj: object, *names: str, units: dict[str, str]) -> None:
