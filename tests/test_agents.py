@@ -10,20 +10,20 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
-
-import mpa_gym  # noqa: F401
-from agents.baselines import make_baseline
-from agents.config import ConfigError, load_config, parse_config
-from agents.episodes import metrics, run_episode
-from agents.evaluate import evaluate, write_report
-from agents.policies import load_run
-from agents.train import train
-from agents.wrappers import (
+from mpa_gym.agents.controllers.baselines import make_baseline
+from mpa_gym.agents.evaluation.episodes import metrics, run_episode
+from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
+from mpa_gym.agents.learned.config import ConfigError, load_config, parse_config
+from mpa_gym.agents.learned.policies import load_run
+from mpa_gym.agents.learned.wrappers import (
     FeatureSpec,
     ForceStiffnessAction,
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
 )
+from mpa_gym.agents.training.train import train
+
+import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.task.contract import OBS_V as OV
 from mpa_gym.task.contract import OBS_VREF as OVR
@@ -192,16 +192,16 @@ def test_resume_continues_the_step_count(tmp_path):
      ({"policy_kwargs": "dict(net_arch=__import__('os'))"}, r"only literals"),
      ({"batch_size": 10_000}, r"batch_size=10000 must be <= n_steps \* n_envs"),
      ({"env_wrapper": "os.system"}, r"env_wrapper='os.system': allowed"),
-     ({"env_wrapper": [{"agents.wrappers.TrackingErrorObservation": {"harmonic": 1}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonic": 1}}]},
       r"TrackingErrorObservation: unknown key\(s\) \['harmonic'\]"),
-     ({"env_wrapper": [{"agents.wrappers.TrackingErrorObservation": {"harmonics": 9}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonics": 9}}]},
       r"harmonics=9 must be a whole number in \[0, 5\]"),
-     ({"env_wrapper": [{"agents.wrappers.ForceStiffnessAction": {"force_N": 0}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.ForceStiffnessAction": {"force_N": 0}}]},
       r"ForceStiffnessAction: force_N=0 must be a number in \(0, 200\]"),
-     ({"env_wrapper": [{"agents.wrappers.ForceStiffnessAction": {"rate_penalty": "big"}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.ForceStiffnessAction": {"rate_penalty": "big"}}]},
       r"ForceStiffnessAction: rate_penalty='big' must be a number in \[0, 100\]"),
-     ({"env_wrapper": ["agents.wrappers.ForceStiffnessAction",
-                       "agents.wrappers.ForceStiffnessAction"]}, "given twice"),
+     ({"env_wrapper": ["mpa_gym.agents.learned.wrappers.ForceStiffnessAction",
+                       "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"]}, "given twice"),
      ({"learning_rate": "fast"}, r"learning_rate='fast' must be a number or 'lin_<number>'"),
      ({"env_kwargs": {"scenery": 1}}, r"env_kwargs=.*allowed keys are \['scenario'")],
 )
@@ -222,7 +222,7 @@ def test_config_structure_errors():
     assert cfg.env_id == "MPALeg-v0" and cfg.policy_kwargs["net_arch"] == [64, 64]
     with pytest.raises(ConfigError, match="ForceStiffnessAction needs MPALegResidual-v0"):
         parse_config({"MPALeg-v0": {"policy": "MlpPolicy", "n_timesteps": 10,
-                                    "env_wrapper": "agents.wrappers.ForceStiffnessAction"}})
+                                    "env_wrapper": "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"}})
 
 
 def test_report_files(tmp_path):
@@ -237,7 +237,7 @@ def test_report_files(tmp_path):
     md = paths["markdown"].read_text()
     assert "| a |" in md and "position RMSE [mm]" in md
     # what each controller was tuned on, in both forms of the report
-    from agents.baselines import TUNED_ON
+    from mpa_gym.agents.controllers.baselines import TUNED_ON
 
     assert data["controllers"] == {"ff": TUNED_ON["ff"], "pid": TUNED_ON["pid"]}
     assert f"| pid | {TUNED_ON['pid']} |" in md
@@ -257,7 +257,7 @@ def test_pid_derivative_is_low_pass_filtered():
     # A step of the velocity error from 0 to 0.1 m/s: the D term follows the discrete
     # first-order filter d_k = d_{k−1} + α (ė − d_{k−1}), α = dt / (tf + dt), i.e.
     # Kd ė (1 − (1 − α)^k); with tf = 0 it is Kd ė at once.
-    from agents.baselines import PIDResidual
+    from mpa_gym.agents.controllers.baselines import PIDResidual
 
     for tf in (0.0, 0.02):
         pid = dataclasses.replace(make_baseline("pid"), kp_bar_per_m=0.0, ki_bar_per_m_s=0.0,
@@ -297,7 +297,8 @@ def test_adaptive_feedforward_follows_its_averaged_law():
     # as exp(−t / τ), τ = adapt_periods · T. Measured over whole periods ending at t: the
     # averaging's ripple (the products at 2ω₀, of relative size T / (2π τ) = 8 %) bounds the
     # agreement at 15 %.
-    from agents.baselines import AdaptiveFeedforward
+    from mpa_gym.agents.controllers.baselines import AdaptiveFeedforward
+
     from mpa_gym.task.contract import OBS_COS, OBS_KREF, OBS_KREF_SCALE, OBS_SIN
 
     afc = make_baseline("afc")
@@ -337,7 +338,7 @@ def test_adaptive_feedforward_gain_is_the_simulated_legs():
     # over the feedforward shifts X by ⟨G⟩ u on average over a period (the period is far below
     # the leg's natural frequency, so the shift is quasi-static). 3 %: the plant's gain varies
     # ~2× along the cycle and the shift is not exactly linear in it at second order.
-    from agents.baselines import AdaptiveFeedforward
+    from mpa_gym.agents.controllers.baselines import AdaptiveFeedforward
 
     afc = make_baseline("afc", SHORT | {"plant": {}})
     assert isinstance(afc, AdaptiveFeedforward)
@@ -360,7 +361,7 @@ def test_adaptive_feedforward_gain_is_the_simulated_legs():
 def test_tuning_runs_on_the_training_plants_and_says_so():
     # Two trials on two plants (a smoke run of the budgeted tuning): the first trial is the
     # current defaults, the best is no worse, and the result names the plants' source.
-    from agents.tune_baselines import score, training_plants, tune
+    from mpa_gym.agents.training.tune_baselines import score, training_plants, tune
 
     r = tune("pid", n_trials=2, n_plants=2, episode_s=9.0)
     assert r["mean_position_rmse_mm"] <= r["default_mean_position_rmse_mm"]
@@ -417,8 +418,8 @@ def test_train_on_a_scenario_file_keeps_its_plants_in_the_run(tmp_path):
     # `train --scenario FILE` (identify's --out) trains on that file's plant and randomize
     # ranges instead of the config's, and the run's config.yaml holds the file's content, so
     # the run folder alone says what it was trained on; a built-in name stays a name.
-    from agents.robustness import training_ranges
-    from mpa_gym.cli import main
+    from mpa_gym.agents.cli import main
+    from mpa_gym.agents.evaluation.robustness import training_ranges
 
     ident = {"name": "identified", "duration_s": 3.0,
              "plant": {"mass_kg": 4.34, "pressure_dead_time_s": 0.021, "slider_friction_N": 1.5},

@@ -1,4 +1,4 @@
-"""The rest-anchored residual policy (agents/anchor.py): zero mean action at zero features."""
+"""The rest-anchored residual policy (agents/learned/anchor.py): zero mean action at zero features."""
 
 from __future__ import annotations
 
@@ -6,15 +6,19 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from mpa_gym.agents.evaluation.episodes import Job, run_episodes
+from mpa_gym.agents.learned.anchor import RestAnchoredPolicy, set_rest
+from mpa_gym.agents.learned.config import ConfigError, parse_config
+from mpa_gym.agents.learned.inference import DeployedPolicy
+from mpa_gym.agents.learned.policies import LearnedPolicy, load_policy, load_run
+from mpa_gym.agents.learned.wrappers import (
+    FeatureSpec,
+    ForceStiffnessAction,
+    TrackingErrorObservation,
+)
+from mpa_gym.agents.training.train import train
 
 import mpa_gym  # noqa: F401
-from agents.anchor import RestAnchoredPolicy, set_rest
-from agents.config import ConfigError, parse_config
-from agents.episodes import Job, run_episodes
-from agents.inference import DeployedPolicy
-from agents.policies import LearnedPolicy, load_policy, load_run
-from agents.train import train
-from agents.wrappers import FeatureSpec, ForceStiffnessAction, TrackingErrorObservation
 from mpa_gym.analysis.scenario import load_scenario
 
 FEATURES = {"errors_only": True, "harmonics": 1, "remodulate": True, "previous_action": True}
@@ -136,7 +140,7 @@ def test_anchor_config_errors_name_the_field():
         parse_config(_config(anchor_at_rest="yes"))
     raw = _config(anchor_at_rest=True)
     wrappers = raw["MPALegResidual-v0"]["env_wrapper"]
-    wrappers[0]["agents.wrappers.TrackingErrorObservation"]["errors_only"] = False
+    wrappers[0]["mpa_gym.agents.learned.wrappers.TrackingErrorObservation"]["errors_only"] = False
     with pytest.raises(ConfigError, match=r"anchor_at_rest=true needs .*errors_only: true"):
         parse_config(raw)
     assert parse_config(_config()).anchor_at_rest is True  # the default config's

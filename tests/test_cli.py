@@ -9,8 +9,8 @@ import sys
 
 import numpy as np
 import pytest
+from mpa_gym.agents.cli import main
 
-from mpa_gym.cli import main
 from mpa_gym.design import FeedforwardDesign, Reference, mode_pattern
 from mpa_gym.model.params import BAR
 
@@ -89,7 +89,7 @@ def test_bad_input_exits_2_with_a_message(capsys, args, match):
 def test_command_runs_as_a_process(how):
     exe = shutil.which("mpa-gym")
     assert exe is not None, "pip install -e . installs the mpa-gym console script"
-    cmd = [exe] if how == "console_script" else [sys.executable, "-m", "mpa_gym.cli"]
+    cmd = [exe] if how == "console_script" else [sys.executable, "-m", "mpa_gym.agents.cli"]
     r = subprocess.run([*cmd, "analyze", "--json"], capture_output=True, text=True, check=True)
     assert json.loads(r.stdout)["stable"] is True
 
@@ -100,7 +100,7 @@ def test_emulate_stops_on_sigterm_with_the_documented_exit_code():
     import re
     import signal
 
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--port",
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--port",
                              "0", "--duration", "60", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert re.search(r"udp://\S+", proc.stderr.readline())

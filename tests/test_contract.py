@@ -30,7 +30,7 @@ def emulator_url():
     """A device emulator in another process (the CLI's), on a UDP loopback port."""
     # the device's watchdog relaxed to 0.5 s, as in the other rig tests: a stall of the loaded
     # test machine must not vent the leg (these tests check the layout, not the timing)
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--port",
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--port",
                              "0", "--duration", "60", "--watchdog", "0.5"],
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -72,7 +72,7 @@ def test_a_column_added_to_the_contract_appears_in_the_sim_envs(monkeypatch, res
             break
         assert env.observation_space.contains(obs)
     if residual:  # the classical controllers read the contract's columns, the new ones too
-        from agents.policies import load_policy
+        from mpa_gym.agents.learned.policies import load_policy
 
         pid = load_policy("pid", {"scenario": "impulse", "task": TASK})[0]
         obs, info = env.reset(seed=0)

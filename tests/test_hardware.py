@@ -12,9 +12,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import REALTIME, serving
+from mpa_gym.agents.rig.rollout import read_log
 
 import mpa_gym  # noqa: F401
-from agents.rollout import read_log
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.emulator import LinkFaults
 from mpa_gym.hardware.env import HardwareLegEnv
@@ -202,7 +202,7 @@ def test_unreachable_device_says_what_to_check(tmp_path):
 
 def test_killed_rollout_leaves_a_readable_log(tmp_path):
     log = tmp_path / "rollout.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "rollout", "--policy", "pid",
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "rollout", "--policy", "pid",
                              "--dry-run", "--episode-s", "20", "--log", str(log)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 30
@@ -219,7 +219,7 @@ def test_killed_rollout_leaves_a_readable_log(tmp_path):
     # line is skipped, not the rest of the file
     with log.open("a") as f:
         f.write('\n{"episode": 0, "rew')  # make sure there is a torn last line
-    done = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "rollout", "--policy", "ff",
+    done = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "rollout", "--policy", "ff",
                            "--dry-run", "--episode-s", "0.5", "--log", str(log)],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr

@@ -11,14 +11,13 @@ import subprocess
 import sys
 
 import gymnasium as gym
+import mpa_gym.agents.rig.rollout
 import numpy as np
 import pytest
 from conftest import REALTIME
-
-import agents.rollout
-import mpa_gym  # noqa: F401
-from agents.excite import ExciteConfig
-from agents.identify import (
+from mpa_gym.agents.controllers.excite import ExciteConfig
+from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.rig.identify import (
     LogData,
     fit_regulator,
     identify,
@@ -27,8 +26,9 @@ from agents.identify import (
     show,
     simulate_pressure,
 )
-from agents.policies import load_policy
-from agents.rollout import rollout
+from mpa_gym.agents.rig.rollout import rollout
+
+import mpa_gym
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.model import dynamics
@@ -55,8 +55,8 @@ def rig_log(tmp_path_factory):
         # device's watchdog to 0.5 s) as in the other rig tests, so that a scheduling hiccup of
         # a loaded test machine (telemetry 44 ms old was seen) does not stop the excitation this
         # test only needs a log of
-        mp.setattr(agents.rollout, "HardwareLegEnv",
-                   functools.partial(agents.rollout.HardwareLegEnv, stale_s=0.2))
+        mp.setattr(mpa_gym.agents.rig.rollout, "HardwareLegEnv",
+                   functools.partial(mpa_gym.agents.rig.rollout.HardwareLegEnv, stale_s=0.2))
         out = rollout("excite", emu.url, log, episode_s=20.0, realtime=True)
     assert "fault" not in out["episodes"][0], out
     return log
@@ -116,7 +116,7 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
 @REALTIME
 def test_identify_cli_json_and_bad_input(rig_log, tmp_path):
     out = tmp_path / "cli.yaml"
-    p = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "identify", "--log", str(rig_log),
+    p = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "identify", "--log", str(rig_log),
                         "--out", str(out), "--json"], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     o = json.loads(p.stdout)
@@ -131,7 +131,7 @@ def test_identify_cli_json_and_bad_input(rig_log, tmp_path):
     for args, msg in ((["--log", str(tmp_path / "nope.jsonl")], "no such file"),
                       (["--log", str(bad)], "no step records"),
                       (["--log", str(rig_log), "--holdout", "0.9"], "--holdout=0.9")):
-        p = subprocess.run([sys.executable, "-m", "mpa_gym.cli", "identify", *args],
+        p = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "identify", *args],
                            capture_output=True, text=True)
         assert p.returncode == 2 and msg in p.stderr and "Traceback" not in p.stderr, p.stderr
 

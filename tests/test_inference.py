@@ -6,12 +6,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from mpa_gym.agents.learned.inference import DeployedPolicy
+from mpa_gym.agents.learned.policies import LearnedPolicy, load_run
+from mpa_gym.agents.learned.wrappers import FeatureSpec
+from mpa_gym.agents.training.train import train
 
 import mpa_gym  # noqa: F401
-from agents.inference import DeployedPolicy
-from agents.policies import LearnedPolicy, load_run
-from agents.train import train
-from agents.wrappers import FeatureSpec
 
 # SB3 runs the network in float32, the deployed path in float64: the actions differ by float32
 # rounding of the features and the 64-wide layers (~1e-7 of O(1) values), far inside 1e-6.
@@ -66,10 +66,9 @@ def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=
                adapt_s=None):
     """A LearnedPolicy around a freshly initialised PPO (random weights) and a normaliser with
     made-up statistics, for the branches the default config does not take."""
+    from mpa_gym.agents.learned.wrappers import ForceStiffnessAction, TrackingErrorObservation
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-    from agents.wrappers import ForceStiffnessAction, TrackingErrorObservation
 
     def make():
         env = gym.make(env_id, task={"episode_s": 3.0})
@@ -153,9 +152,8 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
     # weights, rest point and actions must be those of SB3's PPO.load of the same file, bit for
     # bit, deterministic and sampled (same torch seed)
     import torch
+    from mpa_gym.agents.learned.policies import SavedModel
     from stable_baselines3 import PPO
-
-    from agents.policies import SavedModel
 
     ours = SavedModel.load(tiny_run / "model.zip")
     theirs = PPO.load(tiny_run / "model.zip", device="cpu")
@@ -176,7 +174,7 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
 
 def test_both_policies_check_the_estimator_setting():
     # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
-    # the training wrapper refuses it (one check: agents.wrappers.adapt_time_constant)
+    # the training wrapper refuses it (one check: mpa_gym.agents.learned.wrappers.adapt_time_constant)
     fs = (20.0, 0.3, 1.0)
     layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
     makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),

@@ -160,7 +160,7 @@ def test_realtime_context_restores_what_it_changed():
 def test_loop_benchmark_puts_each_run_beside_the_machines_floor():
     """``mpa-gym bench --loop``: a rollout against an emulator process, paired with the wait
     alone; the figures are what the rollout's timing says, the floor a real wait."""
-    from agents.rollout import loop_benchmark, wait_floor
+    from mpa_gym.agents.rig.rollout import loop_benchmark, wait_floor
 
     floor = wait_floor(200.0, 0.5)
     assert floor["steps"] == 100 and 0.0 <= floor["overrun_pct"] <= 100.0

@@ -2,7 +2,7 @@
 
 Each case must give the documented exit code (2: bad input) or ``ValueError``, no traceback, and
 a message that names the field and the value, before any work is done (no output files, no run
-folder). Most CLI cases call ``mpa_gym.cli.main`` in this process (an uncaught exception fails
+folder). Most CLI cases call ``mpa_gym.agents.cli.main`` in this process (an uncaught exception fails
 the case, as a traceback would); a sample runs as real processes to check the exit code and that
 stderr holds no traceback.
 """
@@ -18,9 +18,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from mpa_gym.agents.cli import main
 
 import mpa_gym  # noqa: F401
-from mpa_gym.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -181,7 +181,7 @@ CONFIGS = [
     ({"env_kwargs": {"task": {"dt_s": "0.01"}}}, ["dt_s", "'0.01'"]),
     ({"env_kwargs": {"scenario": 5}}, ["scenario", "5"]),
     ({"env_kwargs": {"task": "fast"}}, ["task", "fast"]),
-    ({"env_wrapper": [{"agents.wrappers.TrackingErrorObservation": {"harmonics": -1}}]},
+    ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonics": -1}}]},
      ["harmonics", "-1"]),
 ]
 HARNESS = [
@@ -305,7 +305,7 @@ def test_bad_input_as_a_process_exits_2_without_traceback(files):
     for i in PROCESS_SAMPLE:
         argv, want, _ = CASES[i]
         procs.append((argv, want, subprocess.Popen(
-            [sys.executable, "-m", "mpa_gym.cli", *_argv(argv, files)], stdout=subprocess.PIPE,
+            [sys.executable, "-m", "mpa_gym.agents.cli", *_argv(argv, files)], stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True, cwd=ROOT)))
     for argv, want, proc in procs:
         _, err = proc.communicate(timeout=120)
@@ -436,7 +436,7 @@ def test_simulate_refuses_what_design_marks_infeasible_with_the_same_report(flag
 ])
 def test_train_config_validates_itself(kwargs, want):
     """The dataclass checks itself: built in Python, without the YAML loader."""
-    from agents.config import ConfigError, TrainConfig
+    from mpa_gym.agents.learned.config import ConfigError, TrainConfig
 
     with pytest.raises(ConfigError) as e:
         TrainConfig(env_id="MPALegResidual-v0", **kwargs)

@@ -8,13 +8,10 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
-from numpy.testing import assert_allclose
-
-import mpa_gym  # noqa: F401
-from agents.baselines import make_baseline
-from agents.episodes import metrics, run_episode
-from agents.evaluate import evaluate, write_report
-from agents.robustness import (
+from mpa_gym.agents.controllers.baselines import make_baseline
+from mpa_gym.agents.evaluation.episodes import metrics, run_episode
+from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
+from mpa_gym.agents.evaluation.robustness import (
     Grid,
     _scenario,
     cell_metrics,
@@ -25,6 +22,9 @@ from agents.robustness import (
     run_batch,
     run_batches,
 )
+from numpy.testing import assert_allclose
+
+import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import Impulse, load_scenario
 
 SHORT = {"name": "short", "duration_s": 9.0}  # three periods: the metric window is the episode
@@ -234,7 +234,7 @@ def test_sweep_in_a_second_process_gives_the_same_numbers_and_errors():
     # in-process one exactly (the episodes are deterministic), and its errors the same.
     import os
 
-    from agents.evaluate import sweep_in_background
+    from mpa_gym.agents.evaluation.evaluate import sweep_in_background
 
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("a single core: evaluate runs the sweep in its own process")
@@ -255,7 +255,7 @@ def test_scenario_plots_are_drawn_while_the_sweep_finishes(tmp_path):
     # result; write_report then keeps them (not drawn twice) and adds the sweep's own
     import os
 
-    from agents.evaluate import evaluate, write_report
+    from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
 
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("a single core: the sweep runs after the batch, nothing to overlap")

@@ -15,11 +15,11 @@ import time
 import pytest
 import yaml
 from conftest import REALTIME, default_sigint, serving
+from mpa_gym.agents.cli import main
+from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.rig.rollout import read_log, rollout
+from mpa_gym.agents.training.train import train
 
-from agents.policies import load_policy
-from agents.rollout import read_log, rollout
-from agents.train import train
-from mpa_gym.cli import main
 from mpa_gym.hardware.env import HardwareLegEnv
 
 pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
@@ -38,9 +38,9 @@ def _wait_for_steps(log, n, timeout=60.0, proc=None):
 
 # stale_s is relaxed to 0.2 s (as in test_hardware.py): these tests are about stops the test
 # makes, and a scheduling hiccup of the shared 2-core test machine must not stop the episode first
-RELAXED = ("import functools, sys, agents.rollout as r; "
+RELAXED = ("import functools, sys, mpa_gym.agents.rig.rollout as r; "
            "r.HardwareLegEnv = functools.partial(r.HardwareLegEnv, stale_s=0.2); "
-           "from mpa_gym.cli import main; sys.exit(main(sys.argv[1:]))")
+           "from mpa_gym.agents.cli import main; sys.exit(main(sys.argv[1:]))")
 
 
 def test_a_safety_stop_is_logged_printed_and_exits_3(tmp_path, capsys, monkeypatch):
@@ -48,10 +48,10 @@ def test_a_safety_stop_is_logged_printed_and_exits_3(tmp_path, capsys, monkeypat
     the session is not run, the log and stderr say why, the exit code is 3."""
     import functools
 
-    import agents.rollout
+    import mpa_gym.agents.rig.rollout
 
-    monkeypatch.setattr(agents.rollout, "HardwareLegEnv",
-                        functools.partial(agents.rollout.HardwareLegEnv, stale_s=0.2))
+    monkeypatch.setattr(mpa_gym.agents.rig.rollout, "HardwareLegEnv",
+                        functools.partial(mpa_gym.agents.rig.rollout.HardwareLegEnv, stale_s=0.2))
     log = tmp_path / "r.jsonl"
     # the device's watchdog relaxed: the env stops, not the device
     with serving(watchdog_s=0.5) as (url, emu):
@@ -79,7 +79,7 @@ def test_a_safety_stop_is_logged_printed_and_exits_3(tmp_path, capsys, monkeypat
 def test_ctrl_c_and_sigterm_print_one_line_vent_and_log_the_reason(tmp_path, sig):
     # the device's watchdog is relaxed to 1 s so that a scheduling hiccup of the shared test
     # machine does not fire it; after the signal it would fire within 1 s unless the PC vented
-    emu = subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--json",
+    emu = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--json",
                             "--watchdog", "1.0"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                            preexec_fn=default_sigint)
@@ -144,7 +144,7 @@ def test_a_run_at_another_control_rate_is_refused_before_the_rig_is_touched(tmp_
 def test_the_stop_reason_is_logged_when_venting_fails(tmp_path, monkeypatch):
     """Ctrl-C mid-episode, then the vent raises (the link died; not an OSError, which vent
     itself absorbs): the log still says what stopped the rollout, and that venting failed."""
-    import agents.rollout
+    import mpa_gym.agents.rig.rollout
 
     class DyingLink(HardwareLegEnv):
         steps, dead = 0, False
@@ -164,7 +164,7 @@ def test_the_stop_reason_is_logged_when_venting_fails(tmp_path, monkeypatch):
                 raise ValueError("link gone")
             super().vent()
 
-    monkeypatch.setattr(agents.rollout, "HardwareLegEnv", DyingLink)
+    monkeypatch.setattr(mpa_gym.agents.rig.rollout, "HardwareLegEnv", DyingLink)
     log = tmp_path / "r.jsonl"
     # the device's watchdog relaxed: the env decides, not the device
     with serving(watchdog_s=0.5) as (url, _), pytest.raises(ValueError, match="link gone"):

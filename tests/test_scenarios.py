@@ -250,7 +250,8 @@ def test_one_design_builder_serves_scenarios_plans_and_the_cli(capsys):
     """Inputs.design is what a scenario, a plan's stiffness target and the CLI flags build."""
     import json
 
-    from mpa_gym.cli import main
+    from mpa_gym.agents.cli import main
+
     from mpa_gym.task.plan import stiffness_design
 
     sc = load_scenario("nominal")

@@ -1,4 +1,4 @@
-"""Run-time assurance (agents.supervisor): the fallback rescues a residual that destabilises
+"""Run-time assurance (mpa_gym.agents.controllers.supervisor): the fallback rescues a residual that destabilises
 the plant, never drives a healthy loop, and the config names what is wrong with a bad spec."""
 
 from __future__ import annotations
@@ -10,15 +10,8 @@ import numpy as np
 import pytest
 import yaml
 from conftest import REALTIME, serving
-
-import mpa_gym  # noqa: F401
-from agents.baselines import BAR, make_baseline
-from agents.config import ConfigError, parse_config
-from agents.evaluate import evaluate
-from agents.robustness import _cell as robustness_cell
-from agents.robustness import _scenario, cell_metrics, run_batches
-from agents.rollout import read_log, rollout
-from agents.supervisor import (
+from mpa_gym.agents.controllers.baselines import BAR, make_baseline
+from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
     GRACE_PERIODS,
     M_STAGE,
@@ -26,7 +19,14 @@ from agents.supervisor import (
     SupervisorSpec,
     took_over,
 )
-from agents.train import train
+from mpa_gym.agents.evaluation.evaluate import evaluate
+from mpa_gym.agents.evaluation.robustness import _cell as robustness_cell
+from mpa_gym.agents.evaluation.robustness import _scenario, cell_metrics, run_batches
+from mpa_gym.agents.learned.config import ConfigError, parse_config
+from mpa_gym.agents.rig.rollout import read_log, rollout
+from mpa_gym.agents.training.train import train
+
+import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.design.feedforward import affine_in_pressures
 from mpa_gym.task.contract import (
@@ -299,7 +299,7 @@ def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():
     pid = make_baseline("pid", "nominal")
     sup = Supervised(pid, Constant(1.0), DT, T)
     rep = evaluate(["pid"], scen)["results"]
-    from agents.episodes import Job, metrics, run_episodes
+    from mpa_gym.agents.evaluation.episodes import Job, metrics, run_episodes
 
     jobs = [Job(load_scenario(s), sup, "MPALegResidual-v0", {}) for s in scen]
     for s, tr in zip(scen, run_episodes(jobs, 1_000_000), strict=True):

@@ -19,11 +19,10 @@ import pytest
 import torch
 import yaml
 from conftest import alive, children, default_sigint, wait_gone
-from stable_baselines3 import PPO
-
-from agents.config import load_config
-from agents.policies import load_run
-from agents.train import (
+from mpa_gym.agents.cli import main
+from mpa_gym.agents.learned.config import load_config
+from mpa_gym.agents.learned.policies import load_run
+from mpa_gym.agents.training.train import (
     TrainingStopped,
     latest_state,
     read_eval_history,
@@ -31,7 +30,7 @@ from agents.train import (
     write_eval_history,
     zip_timesteps,
 )
-from mpa_gym.cli import main
+from stable_baselines3 import PPO
 
 EV = {"name": "ev", "duration_s": 0.5}
 
@@ -50,7 +49,7 @@ def tiny_config(tmp_path, n_timesteps=256, checkpoint_freq=256, eval_freq=256, *
 
 
 def start(args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "mpa_gym.cli", "train", "--no-progress",
+    return subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "train", "--no-progress",
                              *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=default_sigint, **kw)
 
@@ -366,7 +365,7 @@ def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, mo
                                                     capsys):
     """SIGKILL of the evaluation worker while its first evaluation is under way: training says
     so and evaluates that one and the rest itself; nothing is lost or changed."""
-    from agents import train as tr
+    from mpa_gym.agents.training import train as tr
 
     evaluate = tr.EvalWorker.evaluate
 
@@ -403,9 +402,9 @@ def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
 
 
 def test_the_worker_is_the_default_only_where_it_pays():
-    from agents.config import DEFAULT_CONFIG
-    from agents.seeds import cores
-    from agents.train import eval_worker_pays
+    from mpa_gym.agents.evaluation.seeds import cores
+    from mpa_gym.agents.learned.config import DEFAULT_CONFIG
+    from mpa_gym.agents.training.train import eval_worker_pays
 
     cfg = load_config(DEFAULT_CONFIG)
     assert eval_worker_pays(cfg, cfg.n_timesteps, None) == (cores() >= 2)

@@ -19,10 +19,9 @@ import numpy as np
 import optuna
 import pytest
 import yaml
-from optuna.trial import TrialState
-
-from agents.config import ConfigError, load_config
-from agents.tune import (
+from mpa_gym.agents.cli import main
+from mpa_gym.agents.learned.config import ConfigError, load_config
+from mpa_gym.agents.training.tune import (
     DEFAULT_SPACE,
     apply_params,
     current_params,
@@ -32,7 +31,7 @@ from agents.tune import (
     tune,
     write_best,
 )
-from mpa_gym.cli import main
+from optuna.trial import TrialState
 
 ENV = "MPALegResidual-v0"
 
@@ -83,7 +82,7 @@ def test_default_space_holds_todays_config_and_round_trips():
 
 
 def load_config_from(doc):
-    from agents.config import parse_config
+    from mpa_gym.agents.learned.config import parse_config
 
     return parse_config(json.loads(json.dumps(doc)))
 
@@ -233,7 +232,7 @@ def test_two_workers_share_a_postgresql_study_up_to_the_cap(tmp_path, postgres):
     cfg = tiny_tune_config(tmp_path / "c.yaml")
     held = short_heldout(tmp_path / "h.yaml")
     cap = 4
-    cmd = [sys.executable, "-m", "mpa_gym.cli", "tune", "--config", str(cfg), "--storage",
+    cmd = [sys.executable, "-m", "mpa_gym.agents.cli", "tune", "--config", str(cfg), "--storage",
            postgres, "--study-name", "pg", "--n-trials", "3", "--max-total-trials", str(cap),
            "--heldout", str(held), "--out-dir", str(tmp_path / "runs"), "--json"]
     env = {**os.environ, "MPLBACKEND": "Agg"}
@@ -284,9 +283,8 @@ def test_journal_file_storage(tmp_path):
 # ------------------------------------------------------------------------ seeds and intervals
 
 def test_iqm_and_ci_match_an_independent_trimmed_mean():
+    from mpa_gym.agents.evaluation.seeds import iqm_ci
     from scipy.stats import trim_mean
-
-    from agents.seeds import iqm_ci
 
     rng = np.random.default_rng(0)
     scores = rng.lognormal(size=(8, 3))
@@ -340,7 +338,7 @@ def test_a_killed_workers_trial_is_marked_failed_and_the_study_resumes(tmp_path)
     cfg = tiny_tune_config(tmp_path / "c.yaml")
     held = short_heldout(tmp_path / "h.yaml")
     db = f"sqlite:///{tmp_path}/s.db"
-    base = [sys.executable, "-m", "mpa_gym.cli", "tune", "--config", str(cfg), "--storage", db,
+    base = [sys.executable, "-m", "mpa_gym.agents.cli", "tune", "--config", str(cfg), "--storage", db,
             "--study-name", "k", "--heartbeat", "1", "--heldout", str(held), "--out-dir",
             str(tmp_path / "runs")]
     env = {**os.environ, "MPLBACKEND": "Agg"}

@@ -1,4 +1,4 @@
-"""The spawned worker process (agents.worker) behind training's held-out evaluations and the
+"""The spawned worker process (mpa_gym.agents.worker) behind training's held-out evaluations and the
 report's robustness sweep, with real processes and real signals: a worker that cannot start, a
 killed worker, a killed parent, a Ctrl-C at the terminal, a cancel."""
 from __future__ import annotations
@@ -13,8 +13,7 @@ import time
 
 import pytest
 from conftest import alive, children, default_sigint, wait_gone
-
-from agents.evaluate import Background
+from mpa_gym.agents.evaluation.evaluate import Background
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -22,7 +21,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # argv: the nap [s]; "wait" waits for the call at once, else the script sleeps
 SCRIPT = textwrap.dedent("""
     import os, sys, time
-    from agents.evaluate import Background
+    from mpa_gym.agents.evaluation.evaluate import Background
 
     def nap_then_pid(s):
         time.sleep(s)
@@ -78,7 +77,7 @@ def test_a_worker_that_cannot_start_fails_over_rather_than_hangs():
     call runs in the calling process instead, and it is said."""
     code = textwrap.dedent("""
         import os
-        from agents.evaluate import Background
+        from mpa_gym.agents.evaluation.evaluate import Background
         print(Background("the pid", os.getpid).result() == os.getpid())
     """)
     done = subprocess.run([sys.executable, "-"], input=code, capture_output=True, text=True,

@@ -7,9 +7,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-
-import mpa_gym  # noqa: F401  (registers the env ids)
-from agents.wrappers import (
+from mpa_gym.agents.learned.wrappers import (
     ADAPT_STARTED,
     ADAPT_STATE,
     ADAPT_VAR_M2,
@@ -24,6 +22,8 @@ from agents.wrappers import (
     harmonic_basis,
     integral_step,
 )
+
+import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.design import affine_in_pressures
 from mpa_gym.model.params import BAR
 

@@ -267,7 +267,7 @@ class EmulatorProcess:
             self._tmp.close()
             scenario = self._tmp.name
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mpa_gym.cli", "emulate", "--udp", "--scenario",
+            [sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--scenario",
              str(scenario), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         line = ""
         deadline = time.monotonic() + start_timeout_s

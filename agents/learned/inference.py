@@ -21,8 +21,7 @@ from typing import Any
 
 import numba
 import numpy as np
-
-from agents.wrappers import (
+from mpa_gym.agents.learned.wrappers import (
     ADAPT_STARTED,
     ADAPT_STATE,
     FeatureSpec,
@@ -31,6 +30,7 @@ from agents.wrappers import (
     _constants,
     adapt_time_constant,
 )
+
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.contract import OBS_COS as OCOS
@@ -177,7 +177,7 @@ def _forward(raw, integ, prev, adapt, fresh, spec_i, spec_f, mean, inv_std, clip
 class DeployedPolicy:
     """A trained run's deterministic action through the compiled path (module docstring).
 
-    Build it with :meth:`from_learned` (``agents.policies.load_run(..., deployed=True)`` does).
+    Build it with :meth:`from_learned` (``mpa_gym.agents.learned.policies.load_run(..., deployed=True)`` does).
     ``act(obs, episode_start)`` returns the action in a buffer that the next call overwrites;
     ``predict`` is the baselines' interface for one observation (the state lives inside the
     policy, so one instance serves one episode at a time).
@@ -334,8 +334,8 @@ def benchmark(run_dir: str, n_actions: int = 20_000, n_reference: int = 2_000,
     import time
 
     import gymnasium as gym
+    from mpa_gym.agents.learned.policies import load_run
 
-    from agents.policies import load_run
     from mpa_gym.hardware import protocol as proto
     from mpa_gym.hardware.emulator import EmulatorProcess
     from mpa_gym.hardware.transport import open_transport

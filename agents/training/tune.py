@@ -22,7 +22,7 @@ as PostgreSQL, or a journal file on a shared disk).
   A ``lin_`` learning rate keeps its linear schedule. A new study's first trial is the config
   as written (user attribute ``base_config``) when its values lie in the space.
 - **Objectives** (both minimised): the held-out position RMSE [mm] and stiffness error [% of k̂],
-  each the mean over :data:`agents.evaluate.HELDOUT_SCENARIOS` (30 s episodes, the report's
+  each the mean over :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS` (30 s episodes, the report's
   episode seed) and over the trial's seeds (``--seeds-per-trial``). The Pareto front is the
   study's ``best_trials``. Wall-clock time [s] per trial is the user attribute ``wall_s``.
 - **Pruning**: Optuna prunes single-objective studies only (``Trial.report`` is not defined for
@@ -66,10 +66,7 @@ from typing import Any
 
 import optuna
 import yaml
-from optuna.exceptions import ExperimentalWarning
-from optuna.trial import TrialState
-
-from agents.config import (
+from mpa_gym.agents.learned.config import (
     ACTION_WRAPPER,
     DEFAULT_CONFIG,
     OBS_WRAPPER,
@@ -77,6 +74,9 @@ from agents.config import (
     _literal,
     parse_config,
 )
+from optuna.exceptions import ExperimentalWarning
+from optuna.trial import TrialState
+
 from mpa_gym.files import read_yaml
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
@@ -89,7 +89,7 @@ OBJECTIVES = {"both": ("position_rmse_mm", "stiffness_err_pct"), "position": ("p
 COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 # heartbeat, its retry callback and metric names are experimental in Optuna; used as documented
 warnings.filterwarnings("ignore", category=ExperimentalWarning, module="optuna")
-warnings.filterwarnings("ignore", category=ExperimentalWarning, module="agents.tune")
+warnings.filterwarnings("ignore", category=ExperimentalWarning, module="mpa_gym.agents.training.tune")
 WRAPPER_PREFIX = {"TrackingErrorObservation": OBS_WRAPPER, "ForceStiffnessAction": ACTION_WRAPPER}
 
 
@@ -349,8 +349,8 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
                    worker: str, heldout: list[Any] | None = None
                    ) -> Callable[[optuna.Trial], Any]:
     """The Optuna objective: train each seed, evaluate on the held-out plants, aggregate."""
-    from agents.evaluate import HELDOUT_SCENARIOS, evaluate
-    from agents.train import train
+    from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
+    from mpa_gym.agents.training.train import train
 
     space = parse_space(study_space(data))
     env_id = next(k for k in data if k != "mpa_gym")
@@ -441,7 +441,7 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
          ) -> dict[str, Any]:
     """Run one worker: at most ``n_trials`` trials of the study (fewer once the study holds
     ``max_total_trials``). ``heldout``: the scenarios of the objectives (default
-    :data:`agents.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole study."""
+    :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole study."""
     _check_counts(n_trials, max_total_trials, seeds_per_trial, n_timesteps, heartbeat_s)
     if objective not in OBJECTIVES:
         raise ValueError(f"--objective={objective!r}: allowed {sorted(OBJECTIVES)}")

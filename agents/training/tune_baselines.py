@@ -11,7 +11,7 @@ regulator with the supply), and the gains tuned on the draws alone were unstable
 dead time on the unloaded, frictionless leg of the robustness grid. It runs each candidate's
 gains on all of them as one batch of the native vector env, and minimises the mean position RMSE
 over the plants, each over the last three periods of a ``episode_s`` episode. A plant on which
-the loop is unstable (``agents.robustness``: its error does not settle onto the reference's
+the loop is unstable (``mpa_gym.agents.evaluation.robustness``: its error does not settle onto the reference's
 period) or terminated counts as ``FAILED_MM``: a control engineer does not field gains that
 oscillate on a plant they were tuned for, however small the mean, and the gains the plain mean
 picked (Kd about 13 times the leg's critical damping) were unstable on three of the sixteen
@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mpa_gym.agents.controllers.baselines import make_baseline
+from mpa_gym.agents.evaluation.robustness import cell_metrics, run_batch
+from mpa_gym.agents.learned.config import DEFAULT_CONFIG, load_config
 
-from agents.baselines import make_baseline
-from agents.config import DEFAULT_CONFIG, load_config
-from agents.robustness import cell_metrics, run_batch
 from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
 
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated

@@ -9,10 +9,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from agents.baselines import BASELINES, Policy, make_baseline
-from agents.config import TrainConfig
-from agents.wrappers import (
+from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
+from mpa_gym.agents.learned.config import TrainConfig
+from mpa_gym.agents.learned.wrappers import (
     ADAPT_STATE,
     ActionSpec,
     FeatureSpec,
@@ -21,6 +20,7 @@ from agents.wrappers import (
     force_stiffness_to_residual,
     integral_step,
 )
+
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
 
@@ -63,7 +63,7 @@ class LearnedPolicy:
             t = torch.as_tensor(obs, device=pol.device).float()
             latent = pol.mlp_extractor.forward_actor(
                 pol.extract_features(t, pol.pi_features_extractor))
-            # a RestAnchoredPolicy's mean is its own (agents/anchor.py)
+            # a RestAnchoredPolicy's mean is its own (agents/learned/anchor.py)
             mean = pol.action_mean(latent) if hasattr(pol, "action_mean") else \
                 pol.action_net(latent)
         a = mean.cpu().numpy().reshape((-1, *pol.action_space.shape))
@@ -124,7 +124,7 @@ def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
     """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
 
-    ``deployed``: the compiled single-observation path of ``agents.inference`` (for the rig's
+    ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference`` (for the rig's
     real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded once
     per process for as long as the run's files are unchanged (a report loads a run for every
     batch it runs; ``LearnedPolicy`` keeps no state of its own, so they can share it)."""
@@ -154,9 +154,8 @@ def _load_learned(run: str, which: str, stamp: tuple[Any, ...]) -> tuple[Any, An
 
 def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any]:
     import torch
+    from mpa_gym.agents.learned.config import load_config
     from stable_baselines3.common.vec_env import VecNormalize
-
-    from agents.config import load_config
 
     # one small MLP per step: a thread pool only adds latency (and competes with the rig's loop)
     torch.set_num_threads(1)
@@ -184,7 +183,8 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         norm.norm_reward = False
     policy = LearnedPolicy.from_config(model, norm, cfg)
     if deployed:
-        from agents.inference import DeployedPolicy
+        from mpa_gym.agents.learned.inference import DeployedPolicy
+
         from mpa_gym.task.contract import obs_names
 
         return DeployedPolicy.from_learned(
@@ -227,7 +227,7 @@ class SavedModel:
         return self.policy.predict(observation, state, episode_start, deterministic)
 
     def get_vec_normalize_env(self) -> None:
-        """No env: the normaliser is the ``LearnedPolicy``'s (``agents.anchor.set_rest``)."""
+        """No env: the normaliser is the ``LearnedPolicy``'s (``mpa_gym.agents.learned.anchor.set_rest``)."""
         return None
 
 
@@ -264,9 +264,10 @@ def check_control_period(cfg: TrainConfig, dt_s: float, run: str | Path) -> None
 def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | None = None
               ) -> Policy:
     """``policy`` under the run-time assurance of its config's ``supervisor``
-    (``agents.supervisor``): the fallback baseline is built for the env of ``env_kwargs``
+    (``mpa_gym.agents.controllers.supervisor``): the fallback baseline is built for the env of ``env_kwargs``
     (scenario, stiffness; task settings over the run's own), else for the run's training env."""
-    from agents.supervisor import Supervised
+    from mpa_gym.agents.controllers.supervisor import Supervised
+
     from mpa_gym.analysis.scenario import load_scenario
 
     own, given = cfg.env_kwargs, env_kwargs or {}
@@ -292,8 +293,9 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     is loaded) when ``env_kwargs`` sets a ``task.dt_s`` (the control period it will run at:
     rollout's ``--control-hz``) other than its training one.
     """
-    if spec == "excite":  # system-identification excitation (agents.excite)
-        from agents.excite import ExcitePolicy
+    if spec == "excite":  # system-identification excitation (mpa_gym.agents.controllers.excite)
+        from mpa_gym.agents.controllers.excite import ExcitePolicy
+
         from mpa_gym.task.plan import make_plan
 
         kw = env_kwargs or {}
@@ -307,7 +309,7 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     if Path(spec).is_dir():
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
         if dt is not None and (Path(spec) / "config.yaml").is_file():
-            from agents.config import load_config
+            from mpa_gym.agents.learned.config import load_config
 
             check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
         policy, cfg = load_run(spec, deployed=deployed)

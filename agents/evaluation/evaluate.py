@@ -11,11 +11,11 @@ window `mpa-gym simulate` uses) unless said otherwise:
 - ``recovery_s``: after the first impulse ends, the time until |X − X̂| stays below 1 mm
   (``None`` without an impulse, ``inf`` if it never does);
 - ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds;
-- ``fallback_s``: for a run under a ``supervisor`` (``agents.supervisor``), the time its
+- ``fallback_s``: for a run under a ``supervisor`` (``mpa_gym.agents.controllers.supervisor``), the time its
   fallback took over (``None``: it never did, or the controller has no supervisor);
   ``last_resort_s`` the time its last resort did.
 
-With ``robustness=True`` the report also holds the robustness sweep of ``agents.robustness``
+With ``robustness=True`` the report also holds the robustness sweep of ``mpa_gym.agents.evaluation.robustness``
 (grids of real-rig effects, easy / medium / hard levels) with its heatmaps. On a machine with a
 second core the sweep runs in a second process while the report's batch runs in this one (both
 are single-threaded and independent; the numbers are the same either way).
@@ -32,13 +32,20 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+from mpa_gym.agents.controllers.baselines import BASELINES, Policy, stack
+from mpa_gym.agents.evaluation.episodes import (
+    RECOVERY_BAND_M,
+    Job,
+    Trace,
+    metrics,
+    run_episode,
+    run_episodes,
+)
+from mpa_gym.agents.evaluation.seeds import group_runs, require_stats
+from mpa_gym.agents.learned.config import EVAL_SEED
+from mpa_gym.agents.learned.policies import load_policy
 
 import mpa_gym  # noqa: F401
-from agents.baselines import BASELINES, Policy, stack
-from agents.config import EVAL_SEED
-from agents.episodes import RECOVERY_BAND_M, Job, Trace, metrics, run_episode, run_episodes
-from agents.policies import load_policy
-from agents.seeds import group_runs, require_stats
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 
@@ -65,8 +72,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
     the robustness sweep if ``robustness``.
 
-    All episodes run as one batch (``agents.episodes.run_episodes``); ``batched=False`` runs
-    them one after another (``agents.episodes.run_episode``), with the same numbers.
+    All episodes run as one batch (``mpa_gym.agents.evaluation.episodes.run_episodes``); ``batched=False`` runs
+    them one after another (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers.
     ``plots_dir``: the scenario plots (:func:`plot`) are drawn there while the sweep's worker
     finishes, rather than by :func:`write_report` after it (``report["plots"]``)."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
@@ -94,10 +101,10 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
             swept.cancel()
             raise
     if robustness:
-        from agents.robustness import robustness as sweep
+        from mpa_gym.agents.evaluation.robustness import robustness as sweep
 
         report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
-    from agents.robustness import no_harm
+    from mpa_gym.agents.evaluation.robustness import no_harm
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [_label(p) for p in policies if p not in BASELINES])
@@ -142,11 +149,11 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
 
 
 class Background:
-    """A function call running in a spawned worker process (``agents.worker.Worker``: it ignores
+    """A function call running in a spawned worker process (``mpa_gym.agents.worker.Worker``: it ignores
     Ctrl-C, exits with a SIGKILLed parent, and a dead one fails its call rather than hangs)."""
 
     def __init__(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
-        from agents.worker import Worker
+        from mpa_gym.agents.worker import Worker
 
         self._worker = Worker()
         self._what, self._fn, self._args, self._kwargs = what, fn, args, kwargs
@@ -156,7 +163,7 @@ class Background:
         """Wait for the call, raise its error if it failed, and reap the worker. If the worker
         exited before it answered (it died, or could not start), the call runs in this process,
         and it is said. A Ctrl-C while waiting stops the worker."""
-        from agents.worker import WorkerStopped
+        from mpa_gym.agents.worker import WorkerStopped
 
         try:
             return self._worker.result(self._call)
@@ -173,20 +180,20 @@ class Background:
 
 
 def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None:
-    """``agents.robustness.robustness(policies, **kwargs)`` started in a second process (a fresh
+    """``mpa_gym.agents.evaluation.robustness.robustness(policies, **kwargs)`` started in a second process (a fresh
     interpreter: the policies load there from their specs), or None on a single core."""
     if len(os.sched_getaffinity(0)) < 2:
         return None
-    from agents.robustness import robustness as sweep
+    from mpa_gym.agents.evaluation.robustness import robustness as sweep
 
     return Background("the robustness sweep", sweep, policies, **kwargs)
 
 
 def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:
-    """The groups of run folders of one config (``agents.seeds.group_runs``): per scenario the
+    """The groups of run folders of one config (``mpa_gym.agents.evaluation.seeds.group_runs``): per scenario the
     IQM of each metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate
-    learning curves (:mod:`agents.seeds`). A lone run of its config is in no group."""
-    from agents.seeds import aggregate, group_label, learning_curves
+    learning curves (:mod:`mpa_gym.agents.evaluation.seeds`). A lone run of its config is in no group."""
+    from mpa_gym.agents.evaluation.seeds import aggregate, group_label, learning_curves
 
     out: dict[str, Any] = {}
     for runs in groups:
@@ -201,7 +208,7 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
     """For each run folder: the env steps its held-out evaluations took to reach the
     feedforward's position RMSE on ``scenario`` (default ``heldout_b``, the held-out plant
     under an unknown 0.8 kg load; the feedforward is measured in this same report)."""
-    from agents.train import read_eval_history
+    from mpa_gym.agents.training.train import read_eval_history
 
     ff = results.get(scenario, {}).get("ff")
     out: dict[str, Any] = {}
@@ -224,12 +231,12 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
 
 def tuned_on(spec: str) -> str:
     """What a controller was tuned or trained on, for the report."""
-    from agents.baselines import TUNED_ON
+    from mpa_gym.agents.controllers.baselines import TUNED_ON
 
     if spec in TUNED_ON:
         return TUNED_ON[spec]
     if Path(spec).is_dir():
-        from agents.policies import load_policy
+        from mpa_gym.agents.learned.policies import load_policy
 
         policy, _, cfg = load_policy(spec)
         from mpa_gym.analysis.scenario import load_scenario
@@ -327,11 +334,11 @@ def markdown(report: dict[str, Any]) -> str:
                        f"{'not within the run' if steps is None else steps} | {curve} |")
         out.append("")
     if report.get("robustness"):
-        from agents.robustness import markdown as robustness_markdown
+        from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
 
         out += robustness_markdown(report["robustness"])
     if report.get("no_harm"):
-        from agents.robustness import no_harm_markdown
+        from mpa_gym.agents.evaluation.robustness import no_harm_markdown
 
         out += no_harm_markdown(report["no_harm"])
     return "\n".join(out)
@@ -380,7 +387,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
-        from agents.robustness import plot as robustness_plot
+        from mpa_gym.agents.evaluation.robustness import plot as robustness_plot
 
         data["robustness"] = _finite(report["robustness"])
         plots += robustness_plot(report["robustness"], out / "plots")
@@ -388,7 +395,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     atomic_write_text(out / "report.md", markdown(report))
     curves = {g: v["curves"] for g, v in (report.get("groups") or {}).items() if v["curves"]}
     if curves:
-        from agents.seeds import plot_curves
+        from mpa_gym.agents.evaluation.seeds import plot_curves
 
         plots.append(plot_curves(curves, out / "plots" / "learning_curves.png"))
     return {"json": out / "report.json", "markdown": out / "report.md",

@@ -54,7 +54,7 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
     if any(s < 0 for s in seeds):
         raise ValueError(f"--seeds={seeds}: seeds must be >= 0")
-    from agents.config import DEFAULT_CONFIG
+    from mpa_gym.agents.learned.config import DEFAULT_CONFIG
 
     config = Path(config or DEFAULT_CONFIG)
     base = Path(run_dir) if run_dir else Path("runs") / config.stem
@@ -68,7 +68,7 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         eval_worker = None if cores() >= 2 * at_once else False
 
     def one(seed: int, folder: Path) -> dict[str, Any]:
-        cmd = [sys.executable, "-m", "mpa_gym.cli", "train", "--config", str(config),
+        cmd = [sys.executable, "-m", "mpa_gym.agents.cli", "train", "--config", str(config),
                "--run-dir", str(folder), "--seed", str(seed), "--no-progress", "--json"]
         if n_timesteps is not None:
             cmd += ["--n-timesteps", str(n_timesteps)]

@@ -25,9 +25,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+from mpa_gym.agents.controllers.baselines import Policy
+from mpa_gym.agents.controllers.supervisor import take_over_times, took_over
 
-from agents.baselines import Policy
-from agents.supervisor import take_over_times, took_over
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
 METRIC_PERIODS = 3  # metrics are taken over the last three reference periods of an episode
@@ -209,7 +209,7 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
 
 
 def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
-    """An episode's figures (``agents.evaluate``'s module docstring)."""
+    """An episode's figures (``mpa_gym.agents.evaluation.evaluate``'s module docstring)."""
     w = trace.t >= trace.t[-1] - METRIC_PERIODS * period_s - 1e-9
     e = trace.x - trace.x_ref
     ek = (trace.k - trace.k_ref) / trace.k_ref

@@ -21,7 +21,7 @@ tracking error e = X̂ − X for the three ways a destabilised loop shows itself
   stable loop settles onto a motion with the reference's period (a sag under a load, a phase
   lag), which cancels in the difference; an oscillation at another frequency does not (for an
   aperiodic part r of RMS ρ, e_t − e_{t−T} has RMS ≈ √2 ρ). This is the robustness sweep's
-  "unstable" criterion (``agents.robustness``) made causal. The first two periods are left out
+  "unstable" criterion (``mpa_gym.agents.evaluation.robustness``) made causal. The first two periods are left out
   because the difference would compare the settled loop with its start-up transient. With
   ``aperiodic_clip_mm`` c each sample of e_t − e_{t−T} is clipped to ±c before it is squared
   (winsorised): a kick's transient, centimetres for a few tenths of a second (and seen again
@@ -39,7 +39,7 @@ diverges as well after one period to settle (pid's own limit cycle at 40 ms of d
 unloaded leg reaches 22 mm RMS), the last resort drives the rest of the episode, from its rest
 state: ``ff``, the feedforward alone (a zero residual: Eq. 16 open loop, which has no feedback
 for a delay to destabilise), or ``afc``, the feedforward with adaptive feedforward cancellation
-(``agents.baselines.AdaptiveFeedforward``). That controller starts as the feedforward and learns
+(``mpa_gym.agents.controllers.baselines.AdaptiveFeedforward``). That controller starts as the feedforward and learns
 the periodic command it lacks, acting at the reference's frequency alone, where 40 ms of delay
 is a phase of 5°. Handed to ``ff``, the unloaded leg's loop at 40 ms ended 0.001-0.003 mm above
 the feedforward alone on four seeds of five. The excursion pid's divergence leaves decays by
@@ -99,14 +99,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from mpa_gym.agents.controllers.baselines import BASELINES, Policy
 
-from agents.baselines import BASELINES, Policy
 from mpa_gym.model.params import check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
 FALLBACKS = ("pid", "mbfb")
-# the last resorts (agents.baselines names) and what ``describe`` calls them
+# the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
                 "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
 ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
@@ -133,7 +133,7 @@ class SupervisorSpec:
     persistent_mm: float | None = None
     persistent_clip_mm: float | None = None  # [mm] (None: not clipped)
     # once the fallback trips too: "ff", the feedforward alone; "afc", with adaptive
-    # feedforward cancellation (agents.baselines.AdaptiveFeedforward)
+    # feedforward cancellation (mpa_gym.agents.controllers.baselines.AdaptiveFeedforward)
     last_resort: str | None = None
 
     def __post_init__(self) -> None:
@@ -210,7 +210,7 @@ class Supervised:
                 last is None or type(last).__name__ != BASELINES[spec.last_resort]):
             raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its controller "
                              f"{BASELINES[spec.last_resort]}, got {type(last).__name__} "
-                             "(agents.policies.supervise builds it)")
+                             "(mpa_gym.agents.learned.policies.supervise builds it)")
         self.policy, self.fallback, self.last, self.spec = policy, fallback, last, spec
         self.n_period = max(1, round(period_s / dt))
         self.a_err = dt / (spec.error_window_s + dt)

@@ -35,13 +35,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mpa_gym.agents.controllers.baselines import Policy
+from mpa_gym.agents.controllers.supervisor import take_over_times
+from mpa_gym.agents.evaluation.episodes import (
+    METRIC_PERIODS,
+    Job,
+    metric_window,
+    recovery_s,
+    run_episodes,
+)
+from mpa_gym.agents.evaluation.evaluate import eval_task
+from mpa_gym.agents.learned.config import EVAL_SEED
+from mpa_gym.agents.learned.policies import load_policy
 
-from agents.baselines import Policy
-from agents.config import EVAL_SEED
-from agents.episodes import METRIC_PERIODS, Job, metric_window, recovery_s, run_episodes
-from agents.evaluate import eval_task
-from agents.policies import load_policy
-from agents.supervisor import take_over_times
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0
@@ -110,14 +116,14 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
     """One episode of controller ``spec`` (a name, a run folder, or a policy object for
     ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
     each step until the episode ends (NaN after a termination), whether it terminated, and per
-    step whether a supervisor's fallback drove it (``agents.supervisor``; never, without one)."""
+    step whether a supervisor's fallback drove it (``mpa_gym.agents.controllers.supervisor``; never, without one)."""
     return run_batches([spec], sc, plants, seed)[0]
 
 
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
                 seed: int) -> list[dict[str, np.ndarray]]:
     """:func:`run_batch` for several controllers at once, each on every plant, as one call of
-    ``agents.episodes.run_episodes``: controllers that run in the same env (id and task
+    ``mpa_gym.agents.evaluation.episodes.run_episodes``: controllers that run in the same env (id and task
     settings) share one vector env, a block of legs each, so a step of the sweep is one engine
     call per env rather than per controller; leg j of every block is reset with seed
     ``seed + j``, as the single batch seeds it."""

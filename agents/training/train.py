@@ -47,6 +47,22 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import yaml
+from mpa_gym.agents.evaluation.episodes import Job, metrics, run_episodes
+from mpa_gym.agents.evaluation.evaluate import eval_task
+from mpa_gym.agents.learned.anchor import RestObservation, rest_for_save
+from mpa_gym.agents.learned.config import (
+    DEFAULT_CONFIG,
+    ConfigError,
+    TrainConfig,
+    load_config,
+    parse_config,
+)
+from mpa_gym.agents.learned.policies import LearnedPolicy
+from mpa_gym.agents.learned.wrappers import (
+    ForceStiffnessVectorAction,
+    TrackingErrorVectorObservation,
+)
+from mpa_gym.agents.worker import Worker, WorkerStopped
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import (
     BaseCallback,
@@ -55,13 +71,6 @@ from stable_baselines3.common.callbacks import (
 )
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from agents.anchor import RestObservation, rest_for_save
-from agents.config import DEFAULT_CONFIG, ConfigError, TrainConfig, load_config, parse_config
-from agents.episodes import Job, metrics, run_episodes
-from agents.evaluate import eval_task
-from agents.policies import LearnedPolicy
-from agents.worker import Worker, WorkerStopped
-from agents.wrappers import ForceStiffnessVectorAction, TrackingErrorVectorObservation
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
 from mpa_gym.files import (
@@ -121,7 +130,7 @@ class TrackingMetrics(BaseCallback):
 def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normalizer: Any
                      ) -> list[tuple[dict[str, Any], int]]:
     """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario:
-    all at once, one batched policy call per step (``agents.episodes.run_episodes``)."""
+    all at once, one batched policy call per step (``mpa_gym.agents.evaluation.episodes.run_episodes``)."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
     task = eval_task(cfg)
     traces = run_episodes([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
@@ -162,7 +171,7 @@ def _worker_evaluate(snapshot: tuple[bytes, bytes | None]) -> list[tuple[dict[st
 
 
 class EvalWorker(Worker):
-    """A spawned process (``agents.worker.Worker``: it ignores Ctrl-C and exits with the training
+    """A spawned process (``mpa_gym.agents.worker.Worker``: it ignores Ctrl-C and exits with the training
     process, even a SIGKILLed one) that runs held-out evaluations while training goes on.
 
     Each evaluation gets a pickled copy of the policy and its normaliser as they are at the
@@ -197,7 +206,7 @@ def eval_worker_pays(cfg: TrainConfig, steps: int, on_evaluation: Any) -> bool:
     shorter interval passes before the worker has answered, and training waits for it) and
     nobody acts on an evaluation's result at its step (``on_evaluation``, e.g. tuning's pruner,
     wants training stopped where it evaluated)."""
-    from agents.seeds import cores
+    from mpa_gym.agents.evaluation.seeds import cores
 
     return (cores() >= 2 and bool(cfg.eval_scenarios) and on_evaluation is None
             and cfg.eval_freq >= WORKER_MIN_EVAL_FREQ and steps >= 2 * cfg.eval_freq)
@@ -385,7 +394,7 @@ def model_is_finite(model: Any) -> bool:
 
 
 def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
-    """The model (anchored at its normaliser's zero, ``agents.anchor.rest_for_save``) and its
+    """The model (anchored at its normaliser's zero, ``mpa_gym.agents.learned.anchor.rest_for_save``) and its
     normaliser, each written atomically."""
     with rest_for_save(model):
         atomic_save(model_path, model.save)
@@ -672,7 +681,7 @@ def _new_model(cfg: TrainConfig, env: VecEnv, run: Path, seed: int, verbose: int
         pk["activation_fn"] = getattr(nn, pk["activation_fn"].split(".")[1])
     policy: Any = cfg.policy
     if cfg.anchor_at_rest:
-        from agents.anchor import RestAnchoredPolicy
+        from mpa_gym.agents.learned.anchor import RestAnchoredPolicy
 
         policy = RestAnchoredPolicy
     return PPO(policy, env, policy_kwargs=pk, seed=seed, device="cpu",

@@ -14,9 +14,9 @@ works with ``python -m rl_zoo3.train --algo ppo --env MPALegResidual-v0 --gym-pa
       policy_kwargs: "dict(net_arch=[64, 64], log_std_init=-2.0)"
       env_kwargs: {scenario: {...}, task: {...}}
       env_wrapper:
-        - agents.wrappers.TrackingErrorObservation:
+        - mpa_gym.agents.learned.wrappers.TrackingErrorObservation:
             {errors_only: true, harmonics: 1, remodulate: true}
-        - agents.wrappers.ForceStiffnessAction:
+        - mpa_gym.agents.learned.wrappers.ForceStiffnessAction:
             {force_N: 20.0, stiffness_rel: 0.3, rate_penalty: 0.5}
       learning_rate: !!float 3e-4
       ...
@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
+
 import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.files import read_yaml
 from mpa_gym.model.params import check_keys
@@ -46,15 +48,15 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "clip_range", "clip_range_vf", "normalize_advantage", "ent_coef", "vf_coef",
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed",
-                "tune",  # tune: the search space of `mpa-gym tune` (agents/tune.py)
-                "supervisor",  # run-time assurance of the trained policy (agents/supervisor.py)
-                "anchor_at_rest"}  # mean action zero at zero features (agents/anchor.py)
+                "tune",  # tune: the search space of `mpa-gym tune` (agents/training/tune.py)
+                "supervisor",  # run-time assurance of the trained policy (agents/controllers/supervisor.py)
+                "anchor_at_rest"}  # mean action zero at zero features (agents/learned/anchor.py)
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
-OBS_WRAPPER = "agents.wrappers.TrackingErrorObservation"
-ACTION_WRAPPER = "agents.wrappers.ForceStiffnessAction"
+OBS_WRAPPER = "mpa_gym.agents.learned.wrappers.TrackingErrorObservation"
+ACTION_WRAPPER = "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"
 WRAPPERS = (OBS_WRAPPER, ACTION_WRAPPER)
 # the default training config: `mpa-gym train`, `tune` and `tune-baselines` without --config
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "ppo_residual.yaml"
+DEFAULT_CONFIG = DEFAULT_TRAIN_CONFIG
 EVAL_SEED = 1_000_000  # first seed of evaluation episodes: no training env draws seeds this high
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 
@@ -97,7 +99,7 @@ class TrainConfig:
     # a fallback that takes over from the trained policy when it fails (SupervisorSpec's keys);
     # None: the policy runs alone
     supervisor: Any = None
-    # the policy's mean action is exactly zero while every feature is zero (agents/anchor.py)
+    # the policy's mean action is exactly zero while every feature is zero (agents/learned/anchor.py)
     anchor_at_rest: bool = False
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
     source: str = "config"  # where the settings came from (prefixes error messages)
@@ -130,7 +132,7 @@ class TrainConfig:
             raise ConfigError(f"{h}.eval_scenarios={self.eval_scenarios!r} must be a list of "
                               "scenario names, paths or mappings")
         if self.supervisor is not None:
-            from agents.supervisor import SupervisorSpec
+            from mpa_gym.agents.controllers.supervisor import SupervisorSpec
 
             try:
                 self.supervisor = SupervisorSpec.from_config(self.supervisor)
@@ -322,7 +324,7 @@ def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str) -> None:
     """A wrapper's kwargs, checked by the wrapper's own validation."""
     import dataclasses
 
-    from agents.wrappers import ActionSpec, FeatureSpec
+    from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec
 
     if not isinstance(kwargs, dict):
         raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")
@@ -378,7 +380,7 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
         raise ConfigError(f"{source}: mpa_gym={h!r} must be a mapping with the keys "
                           f"{sorted(HARNESS_KEYS)}")
     check_keys(f"{source}: mpa_gym", h, HARNESS_KEYS, ConfigError)
-    # tune (the search space) is read from ``raw`` by agents.tune, which validates it
+    # tune (the search space) is read from ``raw`` by mpa_gym.agents.training.tune, which validates it
     harness = {k: v for k, v in h.items() if k not in ("eval_scenarios", "tune")}
     if h.get("eval_scenarios") is not None:
         harness["eval_scenarios"] = h["eval_scenarios"]

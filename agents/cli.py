@@ -1,0 +1,754 @@
+"""The `mpa-gym` command: design, analyze, simulate and figures (DESIGN.md's CLI contract).
+
+Every subcommand prints a readable table by default and one JSON object with ``--json``.
+SI units in JSON unless a key says ``_bar``; pressures are given and shown in bar.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mpa_gym.analysis.scenario import Inputs
+from mpa_gym.design import FeedforwardDesign, Reference, feasible_stiffness_range
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
+
+# The design flags' defaults are the dataclasses' (one definition); the name each flag's value
+# goes by in their error messages, to say which flag was wrong.
+REFERENCE, INPUTS = Reference(), Inputs()
+FLAG_FIELDS = {"--x0": "reference.x0_m", "--amp": "reference.amp_m",
+               "--period": "reference.period_s", "--pf-mean": "inputs.pf_mean_bar",
+               "--pf-amp": "inputs.pf_amp_bar", "--p-max": "inputs.p_max_bar"}
+
+PERIOD_MAX_S = 60.0  # [s] longest reference period the CLI accepts (20 × the paper's 3 s)
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM, raised where Python would raise KeyboardInterrupt for Ctrl-C, so that every
+    ``finally`` / ``except BaseException`` (venting the rig, saving a model) runs for it too."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class CommandStopped(Exception):
+    """A command that ran but stopped early: ``out`` is still printed, then ``message`` on
+    stderr, and the process exits with ``code``."""
+
+    def __init__(self, out: dict[str, Any] | None, message: str, code: int) -> None:
+        super().__init__(message)
+        self.out, self.message, self.code = out, message, code
+
+
+def check_out_dir(flag: str, path: str) -> Path:
+    """An output folder, checked before any work: not a file, creatable, writable."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{flag} {path!r} is a file; give a folder (it is created if missing)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path!r} cannot be created: {e.strerror}") from None
+    if not os.access(p, os.W_OK):
+        raise ValueError(f"{flag} {path!r} is not writable")
+    return p
+
+
+def _add_design_flags(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("reference (Eq. 21) and inputs (Eq. 22 / Table 1 / Eq. 25)")
+    g.add_argument("--x0", type=float, default=REFERENCE.x0, metavar="M",
+                   help="X̂0 [m] (default %(default)s)")
+    g.add_argument("--amp", type=float, default=REFERENCE.amp, metavar="M",
+                   help="Â [m] (default %(default)s)")
+    g.add_argument("--period", type=float, default=REFERENCE.period, metavar="S",
+                   help=f"T [s] in [0.1, {PERIOD_MAX_S:g}] (default %(default)s)")
+    g.add_argument("--pf-mean", type=float, default=INPUTS.pf_mean_bar, metavar="BAR",
+                   help="P'_f0 [bar] (default %(default)s, Fig. 3)")
+    g.add_argument("--pf-amp", type=float, default=INPUTS.pf_amp_bar, metavar="BAR",
+                   help="A_f [bar] (default %(default)s)")
+    x = g.add_mutually_exclusive_group()
+    x.add_argument("--mode", type=int, choices=(1, 2, 3), help="Table 1 preset for P'_f0, A_f")
+    x.add_argument("--stiffness", choices=("kmax", "kmin"),
+                   help="Eq. (25) design for the Fig. 11 envelope instead of Eq. (22)")
+    x.add_argument("--stiffness-const", type=float, metavar="N_PER_M",
+                   help="Eq. (25) design for a constant k̂ [N/m]")
+    g.add_argument("--samples", type=int, default=61, metavar="N",
+                   help="samples over one period (default %(default)s)")
+    g.add_argument("--p-max", type=float, default=INPUTS.p_max_bar, metavar="BAR",
+                   help="upper pressure limit [bar] (default %(default)s)")
+
+
+def _design_from_args(a: argparse.Namespace) -> FeedforwardDesign:
+    """The design of the flags, built and checked by the dataclasses a scenario uses; an error
+    names the flag."""
+    check_range("--period", a.period, 0.1, PERIOD_MAX_S, unit="s",
+                note="the analysis integrates one period: its cost grows with T")
+    try:
+        ref = Reference(x0=a.x0, amp=a.amp, period=a.period)
+        inputs = Inputs(pf_mean_bar=a.pf_mean, pf_amp_bar=a.pf_amp, mode=a.mode,
+                        stiffness=a.stiffness, stiffness_const_N_per_m=a.stiffness_const,
+                        p_max_bar=a.p_max)
+    except ValueError as e:
+        msg = str(e)
+        for flag, name in FLAG_FIELDS.items():
+            msg = msg.replace(f"{name}=", f"{flag}=")
+        raise ValueError(msg) from None
+    return inputs.design(ref)
+
+
+def _check_samples(n: int) -> int:
+    if not 2 <= n <= 100_000:
+        raise ValueError(f"--samples={n} is outside the allowed range [2, 100000]")
+    return n
+
+
+def _table(rows: list[list[str]], header: list[str]) -> str:
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:>{w}}}" for w in widths)
+    return "\n".join([fmt.format(*header), fmt.format(*("-" * w for w in widths)),
+                      *(fmt.format(*r) for r in rows)])
+
+
+def cmd_design(a: argparse.Namespace) -> dict[str, Any]:
+    d = _design_from_args(a)
+    n = _check_samples(a.samples)
+    t = np.linspace(0.0, d.period, n)
+    s = d.sample(t)
+    rep = d.feasibility(n_samples=max(n, 601), p_max=a.p_max * BAR)
+    out: dict[str, Any] = {
+        "t": t.tolist(), "x_ref": s.x_ref.tolist(), "v_ref": s.v_ref.tolist(),
+        "pe_bar": (s.pe / BAR).tolist(), "pf_bar": (s.pf / BAR).tolist(), "k": s.k.tolist(),
+        "feasible": rep.feasible, "violations": [v.describe() for v in rep.violations],
+    }
+    if d.stiffness is not None:
+        r = d.reference
+        lo, hi = feasible_stiffness_range(r.position(t), r.velocity(t), r.acceleration(t),
+                                          d.params, a.p_max * BAR)
+        out["k_feasible_min"] = [None if np.isnan(v) else float(v) for v in lo]
+        out["k_feasible_max"] = [None if np.isnan(v) else float(v) for v in hi]
+    return out
+
+
+def show_design(o: dict[str, Any]) -> str:
+    idx = np.unique(np.linspace(0, len(o["t"]) - 1, min(len(o["t"]), 13)).round().astype(int))
+    rows = [[f"{o['t'][i]:.3f}", f"{o['x_ref'][i]:.4f}", f"{o['pe_bar'][i]:.3f}",
+             f"{o['pf_bar'][i]:.3f}", f"{o['k'][i]:.1f}"] for i in idx]
+    text = _table(rows, ["t [s]", "X̂ [m]", "P'_e [bar]", "P'_f [bar]", "k [N/m]"])
+    verdict = "feasible" if o["feasible"] else "INFEASIBLE:\n  " + "\n  ".join(o["violations"])
+    return f"{text}\n\ndesign is {verdict}"
+
+
+def cmd_analyze(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.analysis.stability import analyze
+
+    d = _design_from_args(a)
+    rep = analyze(d)
+    return {
+        "int_a1": rep.int_a1,
+        "theorem1_holds": rep.theorem1_holds,
+        "floquet_multipliers": [[float(m.real), float(m.imag)] for m in rep.multipliers],
+        "floquet_moduli": [float(abs(m)) for m in rep.multipliers],
+        "monodromy_det": float(np.linalg.det(rep.monodromy)),
+        "exp_int_a1": float(np.exp(rep.int_a1)),
+        "stable": rep.stable,
+        "feasible": d.feasibility(p_max=a.p_max * BAR).feasible,
+    }
+
+
+def show_analyze(o: dict[str, Any]) -> str:
+    mults = ", ".join(f"{re:+.6f}{im:+.6f}j (|μ| = {abs(complex(re, im)):.6f})"
+                      for re, im in o["floquet_multipliers"])
+    return "\n".join([
+        f"Theorem 1: ∫_0^T a1 dt = {o['int_a1']:.6f}  "
+        f"({'< 0, holds' if o['theorem1_holds'] else '>= 0, violated'})",
+        f"Floquet multipliers: {mults}",
+        f"Liouville: det Φ(T) = {o['monodromy_det']:.10f}, exp(∫a1) = {o['exp_int_a1']:.10f}",
+        f"periodic motion is {'asymptotically stable' if o['stable'] else 'NOT stable'}"
+        f"; design is {'feasible' if o['feasible'] else 'infeasible'}",
+    ])
+
+
+def cmd_simulate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.analysis.simulate import simulate
+
+    check_range("--output-dt", a.output_dt, a.dt, 60.0, unit="s", note="at least --dt")
+    return simulate(a.scenario, DEFAULT_PARAMS, dt=a.dt, output_dt=a.output_dt).to_json()
+
+
+def show_simulate(o: dict[str, Any]) -> str:
+    x, xr, t = np.array(o["x"]), np.array(o["x_ref"]), np.array(o["t"])
+    idx = np.unique(np.linspace(0, t.size - 1, 11).round().astype(int))
+    rows = [[f"{t[i]:.2f}", f"{x[i]:.5f}", f"{xr[i]:.5f}", f"{(x[i] - xr[i]) * 1e3:+.3f}"]
+            for i in idx]
+    return (f"scenario {o['scenario']}\n"
+            + _table(rows, ["t [s]", "X [m]", "X̂ [m]", "X − X̂ [mm]"])
+            + f"\n\nlast 3 periods: RMSE {o['rmse_m'] * 1e3:.4f} mm, "
+              f"max |X − X̂| {o['max_abs_err_m'] * 1e3:.4f} mm")
+
+
+def cmd_figures(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.figures import make_figures
+
+    check_out_dir("--out", a.out)
+    return {"files": [str(p) for p in make_figures(a.out)]}
+
+
+def show_figures(o: dict[str, Any]) -> str:
+    return "wrote:\n  " + "\n  ".join(o["files"])
+
+
+def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym import bench
+
+    if a.loop is not None:
+        from mpa_gym.agents.rig.rollout import loop_benchmark
+
+        return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig)}
+    if a.inference is not None:
+        from mpa_gym.agents.learned.inference import benchmark
+
+        if not 100 <= a.actions <= 10_000_000:
+            raise ValueError(f"--actions={a.actions} is outside the allowed range [100, 1e7]")
+        return {"inference": benchmark(a.inference, a.actions, max(100, a.actions // 10),
+                                       emulator=not a.no_emulator)}
+    check_range("--seconds", a.seconds, 0.05, 60.0, unit="s")
+    for n in a.sizes:
+        if not 1 <= n <= 65536:
+            raise ValueError(f"--sizes: {n} is outside the allowed range [1, 65536]")
+    return bench.run(a.seconds, tuple(a.sizes))
+
+
+def show_bench(o: dict[str, Any]) -> str:
+    from mpa_gym import bench
+
+    if "loop" in o:
+        from mpa_gym.agents.rig.rollout import show_loop_benchmark
+
+        return show_loop_benchmark(o["loop"])
+    if "inference" in o:
+        from mpa_gym.agents.learned.inference import show_benchmark
+
+        return show_benchmark(o["inference"])
+    return bench.show(o)
+
+
+def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.training.train import (
+        TrainingStopped,
+        read_eval_history,
+        train,
+        zip_timesteps,
+    )
+
+    if a.n_timesteps is not None and not 1 <= a.n_timesteps <= 10**10:
+        raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, 1e10]")
+    if a.seed is not None and not 0 <= a.seed <= 2**31 - 1:
+        raise ValueError(f"--seed={a.seed} must be in [0, 2147483647]")
+    if a.config is not None and a.resume is not None:
+        raise ValueError("--config and --resume exclude each other: a resumed run keeps the "
+                         "config.yaml of its folder")
+    if a.seed is not None and a.resume is not None:
+        raise ValueError("--seed and --resume exclude each other: a resumed run keeps the seed "
+                         "of its config.yaml")
+    if a.scenario is not None and a.resume is not None:
+        raise ValueError("--scenario and --resume exclude each other: a resumed run keeps the "
+                         "training scenario of its config.yaml")
+    if a.seeds is not None:
+        from mpa_gym.agents.evaluation.seeds import train_seeds
+
+        if a.seed is not None or a.resume is not None:
+            raise ValueError("--seeds trains new runs; it goes without --seed and --resume")
+        return {"runs": train_seeds(a.seeds, a.config, a.run_dir, a.n_timesteps, a.jobs,
+                                    a.scenario, a.eval_worker)}
+    try:
+        run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps,
+                    progress=not a.no_progress, scenario=a.scenario, eval_worker=a.eval_worker)
+    except TrainingStopped as e:
+        code = 128 + e.signum if e.signum is not None else 1
+        raise CommandStopped(None, e.reason, code) from None
+    hist = run / "eval"
+    last = read_eval_history(hist)[0][-1:] if (hist / "evaluations.json").is_file() else []
+    return {"run_dir": str(run), "timesteps": zip_timesteps(run / "model.zip"),
+            "last_evaluation": last[0] if last else None}
+
+
+def show_train(o: dict[str, Any]) -> str:
+    if "runs" in o:
+        return "\n\n".join(show_train(r) for r in o["runs"])
+    lines = [f"run folder: {o['run_dir']}  ({o['timesteps']} env steps)"]
+    if o["last_evaluation"]:
+        lines.append(f"held-out evaluation at {o['last_evaluation']['timesteps']} steps:")
+        for name, m in o["last_evaluation"]["scenarios"].items():
+            lines.append(f"  {name:<18} position RMSE {m['position_rmse_mm']:.3f} mm, "
+                         f"stiffness error {m['stiffness_rmse_pct']:.2f} %")
+    return "\n".join(lines)
+
+
+def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.evaluation.evaluate import (
+        HELDOUT_SCENARIOS,
+        PAPER_SCENARIOS,
+        evaluate,
+        write_report,
+    )
+
+    check_out_dir("--out", a.out)
+    if not 0 <= a.seed <= 2**32 - 1:
+        raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
+    scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
+    report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness,
+                      plots_dir=Path(a.out) / "plots")
+    paths = write_report(report, a.out)
+    data = json.loads(paths["json"].read_text())
+    return {"results": data["results"], "robustness": data.get("robustness"),
+            "groups": data.get("groups") or {}, "no_harm": data.get("no_harm") or {},
+            "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
+            "plots": str(paths["plots"])}
+
+
+def show_evaluate(o: dict[str, Any]) -> str:
+    res, groups = o["results"], o.get("groups") or {}
+    grouped = {r for g in groups.values() for r in g["runs"]}
+    ctrls = [c for c in next(iter(res.values())) if c not in grouped]
+
+    def iv(a: dict[str, Any], key: str, fmt: str) -> str:
+        lo, hi = a[f"{key}_ci"]
+        return f"{a[key]:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+
+    rows = [[sc] + [f"{row[c]['position_rmse_mm']:.3f} / {row[c]['stiffness_rmse_pct']:.1f}"
+                    for c in ctrls]
+            + [f"{iv(g['results'][sc], 'position_rmse_mm', '.3f')} / "
+               f"{iv(g['results'][sc], 'stiffness_rmse_pct', '.1f')}" for g in groups.values()]
+            for sc, row in res.items()]
+    levels = (o.get("robustness") or {}).get("levels") or {}
+    extra = ""
+    if levels:
+        lrows = [[lv] + [("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
+                          + (" unstable" if m["unstable"] else "")) for m in per.values()]
+                 for lv, per in levels.items()]
+        extra = ("\n\nrobustness levels, position RMSE [mm] (grids in the report)\n"
+                 + _table(lrows, ["level", *next(iter(levels.values()))]))
+    for ctrl, a in (o.get("no_harm") or {}).items():
+        extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
+                  "cases" + (" (listed in the report)" if a["harm"] else ""))
+    head = "position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods"
+    if groups:
+        head += "; several runs of one config: IQM [95 % CI] over the runs"
+    return (head + "\n"
+            + _table(rows, ["scenario", *ctrls,
+                            *(f"{g} ({len(v['runs'])} runs)" for g, v in groups.items())])
+            + extra
+            + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
+
+
+def cmd_tune_baselines(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.learned.config import DEFAULT_CONFIG
+    from mpa_gym.agents.training.tune_baselines import tune
+
+    return {"results": [tune(name, a.config or DEFAULT_CONFIG, a.n_trials, a.n_plants, a.seed)
+                        for name in a.policy]}
+
+
+def show_tune_baselines(o: dict[str, Any]) -> str:
+    lines = []
+    for r in o["results"]:
+        gains = ", ".join(f"{k} = {v:.4g}" for k, v in r["gains"].items())
+        lines.append(f"{r['policy']}: {gains}\n  mean position RMSE "
+                     f"{r['mean_position_rmse_mm']:.3f} mm (defaults: "
+                     f"{r['default_mean_position_rmse_mm']:.3f} mm) over "
+                     f"{r['tuned_on']['n_plants']} training plants (and as many undamped "
+                     f"twins) of {r['tuned_on']['config']}, "
+                     f"{r['tuned_on']['budget']}")
+    return "\n".join(lines)
+
+
+def cmd_tune(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.training import tune
+
+    if a.best is not None:
+        if a.out is None:
+            raise ValueError("--best STUDY needs --out FILE.yaml")
+        return tune.write_best(a.storage, a.best, a.out, a.trial)
+    if a.out is not None or a.trial is not None:
+        raise ValueError("--out and --trial go with --best STUDY")
+    return tune.tune(a.config, a.storage, a.study_name, a.n_trials, a.max_total_trials,
+                     a.seeds_per_trial, a.n_timesteps, a.objective, a.heartbeat, a.out_dir,
+                     a.heldout)
+
+
+def show_tune(o: dict[str, Any]) -> str:
+    if "out" in o:
+        return (f"wrote {o['out']}: trial {o['trial']} of {o['study_name']} "
+                f"(values {', '.join(f'{v:.4g}' for v in o['values'])})")
+    lines = [f"study {o['study_name']}: {o['n_trials']} trials "
+             + ", ".join(f"{n} {k.lower()}" for k, n in sorted(o["states"].items()))
+             + f"; {o['by_this_worker']} finished by this worker",
+             f"best trials ({' / '.join(o['objectives'])}):"]
+    for t in o["pareto_front"]:
+        vals = ", ".join(f"{k} {v:.4f}" for k, v in t["values"].items())
+        lines.append(f"  #{t['number']}: {vals}; {t['wall_s']:.0f} s; {t['params']}")
+    return "\n".join(lines)
+
+
+def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.hardware.emulator import Emulator, LinkFaults
+    from mpa_gym.hardware.transport import PtyPair, TransportError, UDPServer
+
+    if a.duration is not None:
+        check_range("--duration", a.duration, 0.0, 1e7, low_open=True, unit="s")
+    check_range("--watchdog", a.watchdog, 1e-3, 10.0, unit="s")
+    if not 0 <= a.port <= 65535:
+        raise ValueError(f"--port={a.port} must be in [0, 65535]")
+    faults = LinkFaults(latency_s=a.latency, jitter_s=a.jitter, drop_prob=a.drop,
+                        late_prob=a.late, corrupt_prob=a.corrupt,
+                        position_noise_m=a.position_noise)
+    try:
+        link = UDPServer(a.host, a.port) if a.udp else PtyPair()
+    except TransportError as e:  # a bad --host / --port: the user's input
+        raise ValueError(f"--host {a.host!r} --port {a.port}: {e}") from None
+    where = (f"udp://{link.address[0]}:{link.address[1]}" if a.udp
+             else f"serial://{link.slave_path}")
+    try:
+        emu = Emulator(link, a.scenario, faults=faults, watchdog_s=a.watchdog)
+    except BaseException:
+        link.close()
+        raise
+    try:  # from the first word on, a signal stops the emulator through the handler below
+        print(f"emulating the rig at {where} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        from mpa_gym.hardware.realtime import realtime
+
+        with realtime(sched_fifo=a.realtime) as rt:  # the collector off in any case
+            for note in rt["notes"]:
+                print(f"mpa-gym emulate: {note}", file=sys.stderr, flush=True)
+            emu.run(a.duration)
+    except KeyboardInterrupt as e:  # Ctrl-C is how an emulator is meant to stop (exit 0)
+        emu.stop()
+        stopped_by = e
+    else:
+        stopped_by = None
+    finally:
+        link.close()
+    s = emu.stats
+    out = {"device": where, "commands": s.commands, "telemetry_sent": s.telemetry_sent,
+           "watchdog_vents": s.watchdog_vents, "corrupt_received": s.corrupt_received}
+    if isinstance(stopped_by, Interrupted):  # SIGTERM: the documented 128 + 15
+        raise CommandStopped(out, f"interrupted by {stopped_by}; emulator stopped",
+                             128 + signal.SIGTERM)
+    return out
+
+
+def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.rig.rollout import rollout
+
+    emu = link = None
+    device = a.device
+    if a.dry_run:
+        from mpa_gym.hardware.emulator import Emulator
+        from mpa_gym.hardware.transport import UDPServer
+
+        link = UDPServer("127.0.0.1", 0)
+        try:
+            emu = Emulator(link, a.scenario)
+        except BaseException:  # a bad --scenario: close the socket before saying so
+            link.close()
+            raise
+        thread = emu.start_thread()
+        device = f"udp://127.0.0.1:{link.address[1]}"
+    elif device is None:
+        raise ValueError("--device is required unless --dry-run (serial:///dev/ttyX or "
+                         "udp://HOST:PORT)")
+    from mpa_gym.hardware.env import HardwareFault
+    from mpa_gym.hardware.transport import TransportError
+
+    try:
+        out = rollout(a.policy, device, a.log, a.episodes, a.scenario, a.control_hz,
+                      a.episode_s, realtime=a.realtime)
+    except (HardwareFault, TransportError) as e:  # the rig is vented; the log is on disk
+        raise CommandStopped(None, f"STOPPED, rig vented: {e} (log: {a.log})", 3) from None
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        raise CommandStopped(None, f"interrupted by {signal.Signals(signum).name}; rig vented "
+                             f"(log: {a.log})", 128 + signum) from None
+    finally:
+        if emu is not None:
+            emu.stop()
+            thread.join(timeout=2.0)
+            link.close()
+    if "stopped" in out:
+        raise CommandStopped(out, f"STOPPED, rig vented: {out['stopped']} (log: {a.log})", 3)
+    return out
+
+
+def show_rollout(o: dict[str, Any]) -> str:
+    lines = [f"log: {o['log']}"]
+    for i, m in enumerate(o["episodes"]):
+        lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "
+                     f"{m['position_max_mm']:.3f} mm, stiffness RMSE "
+                     f"{m['stiffness_rmse_pct']:.2f} %, saturation {m['saturation_pct']:.1f} %"
+                     + (f", STOPPED: {m['fault']}" if "fault" in m else ""))
+    t = o["timing"]
+    ms = lambda v: "–" if v is None or v != v else f"{v:.3f} ms"  # noqa: E731
+    lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns in {t['steps']} steps, "
+                 f"p99 jitter {ms(t['p99_jitter_ms'])}, median command latency "
+                 f"{ms(t['median_latency_ms'])}")
+    if t.get("realtime") is not None:
+        rt = t["realtime"]
+        lines.append(f"real-time scheduling: {'SCHED_FIFO' if rt['sched_fifo'] else 'no'}"
+                     + "".join(f"; {n}" for n in rt["notes"]))
+    return "\n".join(lines)
+
+
+def cmd_identify(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.rig.identify import identify
+
+    return identify(a.log, a.out, a.scenario, a.plot, a.holdout, session=a.session)
+
+
+def show_identify(o: dict[str, Any]) -> str:
+    from mpa_gym.agents.rig.identify import show
+
+    return show(o)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mpa-gym",
+        description="McKibben-actuated leg: analytic design, stability analysis, simulation.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add(name: str, help_: str, run: Any, show: Any) -> argparse.ArgumentParser:
+        p = sub.add_parser(name, help=help_, description=help_)
+        p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+        p.set_defaults(run=run, show=show)
+        return p
+
+    _add_design_flags(add("design", "feedforward pressures (Eq. 16/22/25) and stiffness (Eq. 23) "
+                          "over one period", cmd_design, show_design))
+    _add_design_flags(add("analyze", "Theorem 1 and Floquet multipliers of a design",
+                          cmd_analyze, show_analyze))
+    p = add("simulate", "run the nominal feedforward against a scenario's plant", cmd_simulate,
+            show_simulate)
+    p.add_argument("--scenario", required=True, metavar="NAME_OR_YAML_PATH",
+                   help="a name in configs/scenarios (nominal, initial_error, impulse, "
+                        "gamma_mismatch, mass_mismatch, kmax, kmin, load_1kg, load_1kg_kmin) "
+                        "or a YAML file")
+    p.add_argument("--dt", type=float, default=5e-3, metavar="S", help="RK4 step [s]")
+    p.add_argument("--output-dt", type=float, default=0.01, metavar="S",
+                   help="spacing of the printed samples [s]")
+    p = add("figures", "write the paper's figures, reproduced in simulation, as PNGs",
+            cmd_figures, show_figures)
+    p.add_argument("--out", default="figures", metavar="DIR", help="output folder")
+    p = add("train", "train PPO from an rl-zoo style config (default configs/ppo_residual.yaml)",
+            cmd_train, show_train)
+    p.add_argument("--config", default=None, metavar="YAML", help="training config")
+    p.add_argument("--run-dir", default=None, metavar="DIR",
+                   help="run folder (default runs/<env>-<time>-s<seed>)")
+    p.add_argument("--seed", type=int, default=None, help="overrides the config's seed")
+    p.add_argument("--scenario", default=None, metavar="NAME_OR_YAML",
+                   help="train on this scenario instead of the config's (e.g. the plant of "
+                        "`mpa-gym identify --out`, randomised over its uncertainty)")
+    p.add_argument("--resume", default=None, metavar="RUN_DIR",
+                   help="continue a run (step count, model, normaliser, evaluations)")
+    p.add_argument("--n-timesteps", type=int, default=None, metavar="N",
+                   help="env steps to train (default: the config's, or what remains on resume)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                   help="train one run per seed, in parallel processes, into <run-dir>-s<SEED>")
+    p.add_argument("--jobs", type=int, default=None, metavar="N",
+                   help="with --seeds: processes at once (default: the cores)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--eval-worker", action=argparse.BooleanOptionalAction, default=None,
+                   help="held-out evaluations in a second process while training goes on "
+                        "(default: when this process may use two cores and the budget spans "
+                        "two evaluation intervals of at least 10,000 env steps)")
+    p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
+            cmd_evaluate, show_evaluate)
+    p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],
+                   metavar="RUN_DIR|ff|pid|mbfb|afc", help="controllers (default ff pid mbfb)")
+    p.add_argument("--scenarios", nargs="+", default=None, metavar="NAME_OR_YAML",
+                   help="default: the paper's scenarios and the held-out plants")
+    p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")
+    from mpa_gym.agents.learned.config import EVAL_SEED
+
+    p.add_argument("--seed", type=int, default=EVAL_SEED,
+                   help="episode seed (default %(default)s: no training env uses seeds this high)")
+    p.add_argument("--no-robustness", action="store_true",
+                   help="skip the robustness sweep (grids of dead time x load and hysteresis x "
+                        "slider friction, easy/medium/hard levels; ~7 s per controller)")
+    p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
+            "and their undamped twins (Optuna TPE, mean position RMSE; unstable counts as "
+            "failed)", cmd_tune_baselines, show_tune_baselines)
+    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help="PPO config whose training scenario gives the plants "
+                        "(default: the default PPO config, mpa_gym.agents.learned.config.DEFAULT_CONFIG)")
+    p.add_argument("--n-trials", type=int, default=80, metavar="N", help="Optuna trials each")
+    p.add_argument("--n-plants", type=int, default=16, metavar="N",
+                   help="plants drawn from the training ranges (each adds its undamped twin)")
+    p.add_argument("--seed", type=int, default=0, help="plant draws and sampler seed")
+    p = add("tune", "tune hyper-parameters on Optuna; workers sharing --storage and --study-name "
+            "share the study", cmd_tune, show_tune)
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help="base config with its search space in mpa_gym.tune (default "
+                        "configs/ppo_residual.yaml)")
+    p.add_argument("--storage", default="sqlite:///runs/optuna.db", metavar="URL",
+                   help="sqlite:///FILE (default runs/optuna.db), any SQLAlchemy URL "
+                        "(postgresql://USER@HOST:PORT/DB) or journal:FILE (a shared disk)")
+    p.add_argument("--study-name", default="ppo_residual", metavar="NAME")
+    p.add_argument("--n-trials", type=int, default=10, metavar="N",
+                   help="trials this worker runs at most (default 10)")
+    p.add_argument("--max-total-trials", type=int, default=None, metavar="M",
+                   help="cap on the study's trials over all workers")
+    p.add_argument("--seeds-per-trial", type=int, default=1, metavar="S",
+                   help="each trial trains S seeds and averages them (default 1)")
+    p.add_argument("--n-timesteps", type=int, default=None, metavar="T",
+                   help="env steps per seed (default: the config's)")
+    p.add_argument("--objective", choices=["both", "position"], default="both",
+                   help="both: Pareto front of held-out position RMSE and stiffness error, no "
+                        "pruning; position: position RMSE alone, median pruning")
+    p.add_argument("--heartbeat", type=int, default=60, metavar="S",
+                   help="SQL storages: a worker silent for 2 S is dead, its trial FAIL")
+    p.add_argument("--heldout", nargs="+", default=None, metavar="NAME_OR_YAML",
+                   help="scenarios of the objectives (default heldout_a/b/c/bladder)")
+    p.add_argument("--out-dir", default=None, metavar="DIR",
+                   help="trial run folders (default runs/tune/<study>)")
+    p.add_argument("--best", default=None, metavar="STUDY",
+                   help="write the config of STUDY's best trial (with --out) and exit")
+    p.add_argument("--trial", type=int, default=None, metavar="N",
+                   help="with --best: this trial instead of the lowest position RMSE")
+    p.add_argument("--out", default=None, metavar="FILE.yaml", help="with --best")
+    p = add("emulate", "play the rig (plant in real time, wire protocol, watchdog) on a pty or UDP",
+            cmd_emulate, lambda o: json.dumps(o))
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--serial", action="store_true", help="on a pseudo-terminal (prints its path)")
+    g.add_argument("--udp", action="store_true", help="on UDP (prints host:port)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=0, help="UDP port (0: any free one)")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="the plant the emulator plays")
+    p.add_argument("--watchdog", type=float, default=0.04, metavar="S",
+                   help="vent after this long without commands [s] (default 0.04)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
+    p.add_argument("--realtime", action="store_true",
+                   help="real-time (SCHED_FIFO) priority, as a device's firmware has, if "
+                        "permitted")
+    for flag, kind in (("--latency", "s"), ("--jitter", "s"), ("--drop", "probability"),
+                       ("--late", "probability"), ("--corrupt", "probability"),
+                       ("--position-noise", "m")):
+        p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
+    p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
+            cmd_rollout, show_rollout)
+    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb|afc|excite",
+                   help="a run folder, a baseline, or excite: the safe excitation whose log "
+                        "`mpa-gym identify` fits")
+    p.add_argument("--device", default=None, metavar="serial:///dev/ttyX|udp://HOST:PORT")
+    p.add_argument("--dry-run", action="store_true", help="start an emulator and use it")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="reference and feedforward design (the plant is the rig)")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--episode-s", type=float, default=None, metavar="S")
+    from mpa_gym.hardware.env import CONTROL_HZ
+
+    p.add_argument("--control-hz", type=float, default=CONTROL_HZ, metavar="HZ",
+                   help="control rate (default %(default)s; at most 500)")
+    p.add_argument("--log", default="runs/rollout.jsonl", metavar="FILE",
+                   help="per-step JSON-lines log, written as it happens")
+    p.add_argument("--realtime", action="store_true",
+                   help="real-time (SCHED_FIFO) priority for the episodes, as far as "
+                        "permitted (the timing report says what was granted; the garbage "
+                        "collector is off during them in any case)")
+    p = add("identify", "fit the plant (mass, γ, C1, C2, regulator lag and dead time) to a "
+            "rollout log; validate on a held-out stretch", cmd_identify, show_identify)
+    p.add_argument("--log", required=True, metavar="LOG",
+                   help="a rollout log, best of `mpa-gym rollout --policy excite`")
+    p.add_argument("--out", default=None, metavar="FILE.yaml",
+                   help="write a scenario whose plant is the estimate and whose randomize "
+                        "spans ±2 σ (for train, evaluate, emulate --scenario)")
+    p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
+                   help="reference and inputs of the written scenario, and the nominal values "
+                        "the fit starts from (default nominal)")
+    p.add_argument("--plot", default=None, metavar="PNG",
+                   help="logged vs simulated on the held-out stretch (default LOG.identify.png)")
+    p.add_argument("--holdout", type=float, default=0.2, metavar="FRAC",
+                   help="share of the log held out for validation (default 0.2)")
+    p.add_argument("--session", type=int, default=None, metavar="K",
+                   help="which session of the log to fit (index, negative from the end; "
+                        "default the newest)")
+    p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
+            cmd_bench, show_bench)
+    p.add_argument("--seconds", type=float, default=1.0, metavar="S",
+                   help="time per measurement [s] (default 1)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 4096], metavar="N",
+                   help="vector env sizes (default 1 64 1024 4096)")
+    p.add_argument("--inference", default=None, metavar="RUN_DIR",
+                   help="instead: time per action of a trained run, deployed (compiled) path "
+                        "against SB3's predict, with a device emulator in another process")
+    p.add_argument("--actions", type=int, default=20_000, metavar="N",
+                   help="--inference: actions timed on the deployed path (SB3: N/10)")
+    p.add_argument("--no-emulator", action="store_true",
+                   help="--inference: without the emulator process")
+    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb|afc",
+                   help="instead: the rig loop's overruns, jitter and latency against a device "
+                        "emulator in another process, each run beside the machine's floor (the "
+                        "same wait with no work)")
+    p.add_argument("--control-hz", type=float, default=100.0, metavar="HZ",
+                   help="--loop: control rate (default 100)")
+    p.add_argument("--loop-s", type=float, default=10.0, metavar="S",
+                   help="--loop: seconds per run (default 10)")
+    p.add_argument("--repeats", type=int, default=3, metavar="N",
+                   help="--loop: floor/loop pairs (default 3)")
+    p.add_argument("--rig", default="nominal", metavar="NAME_OR_YAML",
+                   help="--loop: the plant the emulator plays (default nominal)")
+    return parser
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Interrupted(signum)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one subcommand. Exit codes: 0 done; 2 bad input (the message names the field, the
+    value and the allowed range); 1 training stopped by its NaN guard; 3 a rollout stopped by a
+    safety check (rig vented); 130 / 143 interrupted by Ctrl-C / SIGTERM (what was reached is
+    saved, the rig vented)."""
+    parser = build_parser()
+    a = parser.parse_args(argv)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        out = a.run(a)
+    except (ValueError, FileNotFoundError) as e:  # bad input: names the field, value and range
+        print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
+        return 2
+    except CommandStopped as e:
+        if e.out is not None:
+            print(json.dumps(e.out) if a.json else a.show(e.out), flush=True)
+        print(f"mpa-gym {a.command}: {e.message}", file=sys.stderr)
+        return e.code
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        print(f"mpa-gym {a.command}: interrupted by {signal.Signals(signum).name}",
+              file=sys.stderr)
+        return 128 + signum
+    except OSError as e:  # the machine's side (disk full, permissions): one line, no traceback
+        print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    print(json.dumps(out) if a.json else a.show(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,3 @@
+"""Controllers behind SB3's ``predict(obs, state, episode_start)``: the classical baselines
+(``ff``, ``pid``, ``mbfb``, ``afc``), the excitation for identification, and the supervisor that
+runs a learned policy under run-time assurance. They need numpy only."""
