@@ -4,6 +4,8 @@ the plant, never drives a healthy loop, and the config names what is wrong with 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -12,7 +14,7 @@ import yaml
 from conftest import REALTIME, serving
 
 import mpa_gym  # noqa: F401
-from agents.baselines import BAR, make_baseline
+from agents.baselines import BAR, BASELINES, Policy, make_baseline
 from agents.config import ConfigError, parse_config
 from agents.evaluate import evaluate
 from agents.robustness import _cell as robustness_cell
@@ -29,6 +31,7 @@ from agents.supervisor import (
 from agents.train import train
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.design.feedforward import affine_in_pressures
+from mpa_gym.model.params import check_range
 from mpa_gym.task.contract import (
     OBS_COS,
     OBS_KREF,
@@ -450,3 +453,291 @@ def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path)
     assert [e["t_s"] for e in events] == [steps[first]["t_s"], steps[last]["t_s"]]
     assert out["episodes"][0]["fallback_s"] == steps[first]["t_s"]
     assert out["episodes"][0]["last_resort_s"] == steps[last]["t_s"]
+
+
+# --- today's flat sections keep their numbers ---------------------------------------------
+
+class Wobbly:
+    """A stateless stand-in for a learned residual whose action depends on the observation (so
+    that the command the fallback takes over, the mean of the policy's last period, matters)."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        obs = np.atleast_2d(observation)
+        e = obs[:, OBS_XREF] - obs[:, OBS_X]
+        a = np.stack([0.3 * np.tanh(e / 0.004), -0.2 * np.tanh(e / 0.009) + 0.05 * obs[:, OBS_SIN]],
+                     axis=-1).astype(np.float32)
+        return (a[0] if np.ndim(observation) == 1 else a), state
+
+
+def _stream(seed: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(observations (steps, 5, N_OBS), episode starts (steps, 5)): five rows of a synthetic loop
+    on the default reference: a growing oscillation at 1.7 Hz, a 25 mm kick at 7 s decaying with
+    0.15 s on a 1 mm periodic error, a sag of 2.6 mm with noise, a ramp that diverges from 4 s,
+    and a 2.5 mm periodic error whose row starts a new episode at 6 s and 11 s."""
+    rng = np.random.default_rng(seed)
+    t = DT * np.arange(n_steps)
+    wave = np.sin(2 * np.pi * t / T)
+    kick = np.where(t >= 7.0, 0.025 * np.exp(-np.clip(t - 7.0, 0.0, None) / 0.15), 0.0)
+    e = np.stack([1e-4 * np.exp(t / 2.0).clip(max=300.0) * np.sin(2 * np.pi * 1.7 * t),
+                  0.001 * wave + kick,
+                  0.0026 + 0.0004 * rng.standard_normal(n_steps),
+                  np.where(t >= 4.0, 0.01 * (t - 4.0) ** 2, 0.0) + 0.0002 * wave,
+                  0.0025 * wave + 0.0003 * rng.standard_normal(n_steps)], axis=1)
+    obs = np.zeros((n_steps, e.shape[1], N_OBS))
+    phase = 2 * np.pi * (t / T)[:, None]
+    obs[..., OBS_XREF] = 0.8 + 0.02 * np.sin(phase)
+    obs[..., OBS_X] = obs[..., OBS_XREF] - e
+    obs[..., OBS_VREF] = 0.02 * 2 * np.pi / T * np.cos(phase)
+    obs[..., OBS_V] = obs[..., OBS_VREF] - np.gradient(e, DT, axis=0)
+    obs[..., OBS_SIN], obs[..., OBS_COS] = np.sin(phase), np.cos(phase)
+    obs[..., OBS_KREF] = 545.0 / OBS_KREF_SCALE
+    start = np.zeros((n_steps, e.shape[1]), dtype=bool)
+    start[0] = True
+    start[[600, 1100], 4] = True
+    return obs, start
+
+
+FLAT_SECTIONS = [
+    yaml.safe_load(open("configs/ppo_residual.yaml"))["mpa_gym"]["supervisor"],  # as of today
+    {},
+    {"fallback": "mbfb", "aperiodic_mm": 2.5},
+    {"fallback": "pid", "error_mm": 0.05, "last_resort": "afc"},
+    {"error_mm": 8.0, "error_window_s": 0.3, "aperiodic_mm": 1.0, "aperiodic_window_s": 2.0,
+     "aperiodic_clip_mm": 1.5, "persistent_mm": 2.0, "last_resort": "ff"},
+    {"fallback": "mbfb", "persistent_mm": 2.2, "persistent_clip_mm": 2.5, "last_resort": "afc"},
+]
+
+
+@pytest.mark.parametrize("section", FLAT_SECTIONS, ids=range(len(FLAT_SECTIONS)))
+def test_a_flat_section_drives_exactly_as_before(section):
+    # A run folder written before the cascade was declared holds its supervisor as flat keys
+    # (config.yaml keeps the file's content). Read by SupervisorSpec.from_config and run by
+    # Supervised on a fixed observation stream the code did not produce (_stream), it gives
+    # the stages and actions of the supervisor of that time (RefSupervised below, a verbatim
+    # copy), bit for bit: same float64 running means, same comparisons, same controllers
+    # called with the same states. Batched rows (with mid-stream episode starts) and a single
+    # observation at a time (the rig's path).
+    obs, start = _stream(7, round(5 * T / DT))
+    flat = dict(section)
+    old_spec = RefSupervisorSpec(**flat)
+    new_spec = SupervisorSpec.from_config(flat)
+    assert new_spec.fallback == old_spec.fallback
+    assert new_spec.last_resort == old_spec.last_resort
+
+    def build(cls, spec):
+        last = None if spec.last_resort is None else make_baseline(spec.last_resort)
+        return cls(Wobbly(), make_baseline(spec.fallback), DT, T, spec, last)
+
+    old, new = build(RefSupervised, old_spec), build(Supervised, new_spec)
+    reached = set()
+    for rows in (slice(None), 3):  # the batch, then row 3 alone, one observation at a time
+        s_old = s_new = None
+        for k in range(obs.shape[0]):
+            o, st = obs[k, rows], start[k, rows]
+            a_old, s_old = old.predict(o, s_old, np.atleast_1d(st))
+            a_new, s_new = new.predict(o, s_new, np.atleast_1d(st))
+            assert a_new.dtype == a_old.dtype and a_new.shape == a_old.shape, k
+            np.testing.assert_array_equal(a_new, a_old, err_msg=f"step {k}")
+            np.testing.assert_array_equal(took_over(new, s_new), RefSupervised.stage(s_old),
+                                          err_msg=f"step {k}")
+            reached |= set(RefSupervised.stage(s_old).tolist())
+    # the stream exercises the cascade as far as the section goes
+    assert reached == ({0, 1, 2} if old_spec.last_resort else {0, 1})
+
+
+# --- the reference: agents/supervisor.py as of d227f9f, before the cascade was declared ---
+# Copied verbatim (its names prefixed Ref / REF_, the contract columns aliased) so that the
+# equivalence test needs nothing outside this repository. Do not edit: it is the yardstick.
+OX, OXR = OBS_X, OBS_XREF
+
+REF_FALLBACKS = ("pid", "mbfb")
+# the last resorts (agents.baselines names) and what ``describe`` calls them
+REF_LAST_RESORTS = {"ff": "ff alone",
+                "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
+REF_ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
+REF_GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
+REF_POLICY, REF_FALLBACK, REF_LAST_RESORT = 0, 1, 2  # the stages: who drives
+# the monitor's columns per row (``RefSupervised``): the two running means, the stage, the steps
+# taken, the step the stage began; then the ring buffers
+REF_M_ERR, REF_M_AP, REF_M_STAGE, REF_M_STEP, REF_M_SINCE, REF_M_PER = range(6)
+REF_M_RING = 6
+
+
+@dataclass(frozen=True)
+class RefSupervisorSpec:
+    """A run config's ``mpa_gym.supervisor`` (its keys; module docstring)."""
+
+    fallback: str = "pid"  # the baseline that takes over
+    error_mm: float = 15.0  # [mm] running RMS of X̂ − X above which it takes over
+    error_window_s: float = 0.5  # [s] time constant of that running mean
+    aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
+    aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
+    aperiodic_clip_mm: float | None = None  # [mm] e_t − e_{t−T} clipped to ± this (None: not)
+    # [mm] running RMS (over aperiodic_window_s, from the third period on) of e itself, each
+    # sample clipped to ±persistent_clip_mm, above which it takes over (None: not watched)
+    persistent_mm: float | None = None
+    persistent_clip_mm: float | None = None  # [mm] (None: not clipped)
+    # once the fallback trips too: "ff", the feedforward alone; "afc", with adaptive
+    # feedforward cancellation (agents.baselines.AdaptiveFeedforward)
+    last_resort: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.fallback not in REF_FALLBACKS:
+            raise ValueError(f"supervisor.fallback={self.fallback!r}: "
+                             f"allowed {list(REF_FALLBACKS)}")
+        if self.last_resort is not None and self.last_resort not in REF_LAST_RESORTS:
+            raise ValueError(f"supervisor.last_resort={self.last_resort!r}: allowed null or "
+                             f"{list(REF_LAST_RESORTS)}")
+        for key, hi, unit in (("error_mm", 100.0, "mm"), ("error_window_s", 30.0, "s"),
+                              ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
+            check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
+                        unit=unit)
+        if self.aperiodic_clip_mm is not None:  # below the level, the monitor could never trip
+            check_range("supervisor.aperiodic_clip_mm", self.aperiodic_clip_mm,
+                        self.aperiodic_mm, 100.0, low_open=True, unit="mm")
+        if self.persistent_mm is not None:
+            check_range("supervisor.persistent_mm", self.persistent_mm, 0.0, 100.0,
+                        low_open=True, unit="mm")
+        if self.persistent_clip_mm is not None:
+            if self.persistent_mm is None:
+                raise ValueError(f"supervisor.persistent_clip_mm={self.persistent_clip_mm!r} "
+                                 "needs supervisor.persistent_mm")
+            check_range("supervisor.persistent_clip_mm", self.persistent_clip_mm,
+                        self.persistent_mm, 100.0, low_open=True, unit="mm")
+
+    @classmethod
+    def from_config(cls, value: Any) -> RefSupervisorSpec:
+        """The spec of a config's ``supervisor`` mapping (unknown keys refused by name)."""
+        if isinstance(value, cls):
+            return value
+        keys = [f.name for f in dataclasses.fields(cls)]
+        if not isinstance(value, dict):
+            raise ValueError(f"supervisor={value!r} must be a mapping with keys {keys}")
+        unknown = sorted(set(value) - set(keys), key=str)
+        if unknown:
+            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are {keys}")
+        return cls(**value)
+
+    def describe(self) -> str:
+        out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
+               f"exceeds {self.error_mm:g} mm or, after {REF_ARM_PERIODS} periods, the RMS of its "
+               f"change over one period (over {self.aperiodic_window_s:g} s"
+               + (f", each sample clipped to ±{self.aperiodic_clip_mm:g} mm"
+                  if self.aperiodic_clip_mm is not None else "")
+               + f") exceeds {self.aperiodic_mm:g} mm")
+        if self.persistent_mm is not None:
+            out += (f" or, after {REF_ARM_PERIODS} periods, the error's own RMS over "
+                    f"{self.aperiodic_window_s:g} s"
+                    + (f" (each sample clipped to ±{self.persistent_clip_mm:g} mm)"
+                       if self.persistent_clip_mm is not None else "")
+                    + f" exceeds {self.persistent_mm:g} mm")
+        if self.last_resort:
+            out += (f"; {REF_LAST_RESORTS[self.last_resort]} once {self.fallback}'s loop, given "
+                    f"{REF_GRACE_PERIODS} period(s) to settle, passes {self.error_mm:g} mm too")
+        return out
+
+
+class RefSupervised:
+    """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
+    (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
+    With ``spec.last_resort``, the error monitor restarts when the fallback takes over and, if
+    the fallback's loop diverges too (after ``REF_GRACE_PERIODS`` to settle), ``last`` (the
+    controller ``spec.last_resort`` names) drives the rest of the episode from its rest state.
+
+    State: (policy's, fallback's, monitor, last resort's) with the monitor an (n, 6 + 3N) array
+    per row: the ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the
+    stage, the steps taken, the step the stage began, running mean of the clipped e²), then ring
+    buffers of the last N = T / dt errors and of the policy's last N actions (extensor's, then
+    flexor's)."""
+
+    def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
+                 spec: RefSupervisorSpec = RefSupervisorSpec(), last: Policy | None = None) -> None:
+        if spec.last_resort is not None and (
+                last is None or type(last).__name__ != BASELINES[spec.last_resort]):
+            raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its controller "
+                             f"{BASELINES[spec.last_resort]}, got {type(last).__name__} "
+                             "(agents.policies.supervise builds it)")
+        self.policy, self.fallback, self.last, self.spec = policy, fallback, last, spec
+        self.n_period = max(1, round(period_s / dt))
+        self.a_err = dt / (spec.error_window_s + dt)
+        self.a_ap = dt / (spec.aperiodic_window_s + dt)
+        self.clip = np.inf if spec.aperiodic_clip_mm is None else spec.aperiodic_clip_mm * 1e-3
+        self.persistent = np.inf if spec.persistent_mm is None else spec.persistent_mm * 1e-3
+        self.per_clip = (np.inf if spec.persistent_clip_mm is None
+                         else spec.persistent_clip_mm * 1e-3)
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = True
+                ) -> tuple[np.ndarray, Any]:
+        obs = np.asarray(observation, dtype=np.float64)
+        single = obs.ndim == 1
+        rows = obs.reshape(1, -1) if single else obs
+        n, N = rows.shape[0], self.n_period
+        inner, fb, mon, lr = (None, None, None, None) if state is None else state
+        mon = np.zeros((n, REF_M_RING + 3 * N)) if mon is None else np.array(mon, dtype=float)
+        if episode_start is not None:
+            mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        stage_before = mon[:, REF_M_STAGE].copy()
+        e = rows[:, OXR] - rows[:, OX]
+        k = mon[:, REF_M_STEP].astype(np.int64)
+        slot = REF_M_RING + k % N
+        past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
+        mon[:, REF_M_ERR] += self.a_err * (e**2 - mon[:, REF_M_ERR])
+        armed = k - mon[:, REF_M_SINCE] >= REF_ARM_PERIODS * N  # two periods into the stage
+        change = np.clip(e - past, -self.clip, self.clip)
+        mon[:, REF_M_AP] += np.where(armed, self.a_ap * (change**2 - mon[:, REF_M_AP]), 0.0)
+        held_e = np.clip(e, -self.per_clip, self.per_clip)
+        mon[:, REF_M_PER] += np.where(armed, self.a_ap * (held_e**2 - mon[:, REF_M_PER]), 0.0)
+        mon[np.arange(n), slot] = e
+        # the fallback's loop is judged on divergence alone: after a hand-over it settles from
+        # the policy's oscillation, slowly where it is near its own margin (module docstring)
+        grace = (stage_before > 0.0) & (k - mon[:, REF_M_SINCE] < REF_GRACE_PERIODS * N)
+        trip = (((np.sqrt(mon[:, REF_M_ERR]) > self.spec.error_mm * 1e-3) & ~grace)
+                | (((np.sqrt(mon[:, REF_M_AP]) > self.spec.aperiodic_mm * 1e-3)
+                    | (np.sqrt(mon[:, REF_M_PER]) > self.persistent))
+                   & (stage_before == 0.0)))
+        last = REF_LAST_RESORT if self.spec.last_resort else REF_FALLBACK
+        mon[:, REF_M_STAGE] = np.where(trip, np.minimum(stage_before + 1.0, last), stage_before)
+        if self.spec.last_resort:  # each stage is judged on its own loop: the monitor restarts
+            moved = (mon[:, REF_M_STAGE] > stage_before) & (mon[:, REF_M_STAGE] < last)
+            mon[moved, REF_M_ERR] = mon[moved, REF_M_AP] = mon[moved, REF_M_PER] = 0.0
+            mon[moved, REF_M_SINCE] = k[moved] + 1
+        driving = mon[:, REF_M_STAGE] > 0.0
+        a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
+        a2 = np.atleast_2d(a)
+        mon[np.arange(n), slot + N] = a2[:, 0]
+        mon[np.arange(n), slot + 2 * N] = a2[:, 1]
+        mon[:, REF_M_STEP] += 1
+        if not driving.any():  # the fallback runs only once it drives
+            return a, (inner, None, mon, None)
+        new = driving & ~(stage_before > 0.0) if fb is not None else driving
+        take_over = getattr(self.fallback, "take_over", None)
+        if take_over is None:  # no bumpless transfer: from zero state
+            b, fb = self.fallback.predict(observation, fb, new[0] if single else new,
+                                          deterministic)
+        else:
+            fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
+            b, fb = self.fallback.predict(observation, fb, None, deterministic)
+        out = np.where(driving[:, None], np.atleast_2d(b), a2)
+        resort = mon[:, REF_M_STAGE] >= REF_LAST_RESORT
+        if resort.any():  # the last resort, from its rest state on the rows it takes over
+            fresh = resort & (stage_before < REF_LAST_RESORT)
+            c, lr = self.last.predict(observation, lr, fresh[0] if single else fresh,
+                                      deterministic)
+            out[resort] = np.atleast_2d(c)[resort]
+        out = out.astype(np.float32)
+        return (out[0] if single else out), (inner, fb, mon, lr)
+
+    def held(self, mon: np.ndarray) -> np.ndarray:
+        """(n, 2) per row, the mean of the policy's actions over the last reference period (or
+        over the steps so far, within the first): the command the fallback takes over."""
+        N, r = self.n_period, REF_M_RING
+        filled = np.minimum(mon[:, REF_M_STEP], N)[:, None]
+        return np.stack([mon[:, r + N:r + 2 * N].sum(axis=1),
+                         mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
+
+    @staticmethod
+    def stage(state: Any) -> np.ndarray | None:
+        """Per row, who drives: ``REF_POLICY``, ``REF_FALLBACK`` or ``REF_LAST_RESORT`` (None
+        before the first step)."""
+        return None if state is None else np.asarray(state[2])[:, REF_M_STAGE].astype(np.int8)
