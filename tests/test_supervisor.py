@@ -23,7 +23,9 @@ from agents.rollout import read_log, rollout
 from agents.supervisor import (
     ARM_PERIODS,
     GRACE_PERIODS,
-    M_STAGE,
+    Divergence,
+    LimitCycle,
+    Stage,
     Supervised,
     SupervisorSpec,
     took_over,
@@ -46,6 +48,12 @@ from mpa_gym.task.contract import (
 
 DT, T = 0.01, 3.0
 N_OBS = len(obs_names(residual=True))
+
+
+def flat(**keys) -> SupervisorSpec:
+    """The spec of a flat ``supervisor`` section (the form run folders hold; its omitted keys
+    mean what they always did: no clip, no persistent monitor, no last resort)."""
+    return SupervisorSpec.from_config(keys)
 
 
 class Constant:
@@ -86,7 +94,7 @@ def test_monitor_trips_on_an_aperiodic_oscillation_and_not_on_a_periodic_error()
     periodic = 0.010 * np.sin(2 * np.pi * t / T)
     osc = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * (21.5 / T) * t)
     errors = np.stack([periodic, periodic + osc, np.where(t >= 1.0, 0.02, 0.0)], axis=1)
-    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, flat())
     drove = _drive(sup, errors) > 0.5
     first = [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
              for r in range(3)]
@@ -113,7 +121,7 @@ def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillat
     big = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * f * t)
     errors = np.stack([kick, small, big], axis=1)
     drove = {clip: _drive(Supervised(Constant(0.0), Constant(1.0), DT, T,
-                                     SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=clip)),
+                                     flat(aperiodic_mm=2.0, aperiodic_clip_mm=clip)),
                           errors) > 0.5 for clip in (None, 3.0)}
     first = {clip: [np.flatnonzero(d[:, r])[0] if d[:, r].any() else None for r in range(3)]
              for clip, d in drove.items()}
@@ -122,7 +130,7 @@ def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillat
     assert first[3.0][2] is not None and first[3.0][2] >= first[None][2]
     with pytest.raises(ValueError, match=r"aperiodic_clip_mm=1.5 mm is outside the allowed "
                                          r"range \(2, 100\] mm"):
-        SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
+        flat(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
 
 
 def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass():
@@ -141,33 +149,33 @@ def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass(
     kick = np.where(t >= 7.0, 0.020 * np.exp(-np.clip(t - 7.0, 0.0, None) / 0.1), 0.0)
     errors = np.stack([0.004 * wave, 0.001 * wave + kick], axis=1)
 
-    def first(spec):  # the limit-cycle monitor set out of the way (it sees the kick again)
-        spec = dataclasses.replace(spec, aperiodic_mm=100.0)
+    def first(**keys):  # the limit-cycle monitor set out of the way (it sees the kick again)
+        spec = flat(**keys, aperiodic_mm=100.0)
         drove = _drive(Supervised(Constant(0.0), Constant(1.0), DT, T, spec), errors) > 0.5
         return [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
                 for r in range(2)]
 
     m = np.mean(np.clip(0.004 * wave, -0.003, 0.003) ** 2)
     expected = ARM_PERIODS * T + 3.0 * np.log(m / (m - 0.002 ** 2))
-    clipped = first(SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=3.0))
+    clipped = first(persistent_mm=2.0, persistent_clip_mm=3.0)
     assert clipped[0] == pytest.approx(expected, abs=0.8) and clipped[1] is None
-    assert first(SupervisorSpec(persistent_mm=2.0))[1] is not None  # the clip is what passes it
-    assert first(SupervisorSpec()) == [None, None]  # not watched unless set
+    assert first(persistent_mm=2.0)[1] is not None  # the clip is what passes it
+    assert first() == [None, None]  # not watched unless set
     # the fallback's own loop is not judged on it: with a last resort, the fallback keeps
     # driving under the same periodic error for six periods after the monitor re-arms (two
     # periods into the fallback's stage), where the policy's stage tripped 3.4 s after arming
     t8 = DT * np.arange(round(clipped[0] / DT) + round((ARM_PERIODS + 6) * T / DT))
     sup = Supervised(Constant(0.0), Constant(1.0), DT, T,
-                     SupervisorSpec(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
-                                    last_resort="ff"), make_baseline("ff"))
+                     flat(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
+                          last_resort="ff"), make_baseline("ff"))
     out = _drive(sup, 0.004 * np.sin(2 * np.pi * t8 / T)[:, None])
     assert np.all(out[round(clipped[0] / DT) + 1:] == 1.0)
     with pytest.raises(ValueError, match=r"persistent_clip_mm=1.5 mm is outside the allowed "
                                          r"range \(2, 100\] mm"):
-        SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=1.5)
+        flat(persistent_mm=2.0, persistent_clip_mm=1.5)
     with pytest.raises(ValueError,
                        match=r"persistent_clip_mm=3\.0 needs supervisor\.persistent_mm"):
-        SupervisorSpec(persistent_clip_mm=3.0)
+        flat(persistent_clip_mm=3.0)
 
 
 def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
@@ -181,8 +189,8 @@ def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
     errors = np.stack([np.where(t >= 1.0, 0.02, 0.0), 0.010 * np.sin(2 * np.pi * t / T)],
                       axis=1)
     chained = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T,
-                                SupervisorSpec(last_resort="ff"), make_baseline("ff")), errors)
-    plain = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T), errors)
+                                flat(last_resort="ff"), make_baseline("ff")), errors)
+    plain = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T, flat()), errors)
     to_fallback = np.flatnonzero(chained[:, 0] == 1.0)[0] * DT
     to_ff = np.flatnonzero(chained[:, 0] == 0.0)[0] * DT
     assert 1.38 < to_fallback < 1.45
@@ -201,7 +209,7 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
     # saw meanwhile, leave it untouched). Without one, the spec is refused by name.
     t = DT * np.arange(round(3 * T / DT))
     errors = np.stack([np.where(t >= 1.0, 0.02, 0.0), np.where(t >= 2.5, 0.02, 0.0)], axis=1)
-    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, SupervisorSpec(last_resort="afc"),
+    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, flat(last_resort="afc"),
                      make_baseline("afc"))
     state, got, want = None, [[], []], [[], []]
     fresh = [None, None]
@@ -210,10 +218,10 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
         obs[:, OBS_XREF], obs[:, OBS_X], obs[:, OBS_KREF] = 0.8 + e, 0.8, 545.0 / OBS_KREF_SCALE
         phase = 2 * np.pi * t[k] / T
         obs[:, OBS_SIN], obs[:, OBS_COS] = np.sin(phase), np.cos(phase)
-        stage_before = np.zeros(2) if state is None else state[2][:, M_STAGE].copy()
+        stage_before = np.zeros(2) if state is None else Supervised.stage(state)
         a, state = sup.predict(obs, state, np.full(2, k == 0))
         for r in range(2):
-            if state[2][r, M_STAGE] >= 2.0:
+            if Supervised.stage(state)[r] >= 2:
                 start = np.array([stage_before[r] < 2.0])
                 b, fresh[r] = make_baseline("afc").predict(obs[r:r + 1], fresh[r], start)
                 got[r].append(a[r])
@@ -223,7 +231,7 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
     for r in range(2):
         np.testing.assert_array_equal(np.array(got[r]), np.array(want[r]))
     with pytest.raises(ValueError, match=r"last_resort='afc' needs its controller"):
-        Supervised(Constant(0.5), Constant(1.0), DT, T, SupervisorSpec(last_resort="afc"))
+        Supervised(Constant(0.5), Constant(1.0), DT, T, flat(last_resort="afc"))
 
 
 def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
@@ -238,9 +246,9 @@ def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
     pid = make_baseline("pid", sc)
     stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
                                 kd_bar_s_per_m=12.0, tf_s=0.0)
-    plain = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    plain = Supervised(stiff, make_baseline("pid", sc), DT, T, flat())
     chained, adaptive = (Supervised(stiff, make_baseline("pid", sc), DT, T,
-                                    SupervisorSpec(last_resort=name), make_baseline(name, sc))
+                                    flat(last_resort=name), make_baseline(name, sc))
                          for name in ("ff", "afc"))
     ff = make_baseline("ff", sc)
     m_pid, m_plain, m_chained, m_adaptive, m_ff = (
@@ -280,7 +288,7 @@ def test_fallback_rescues_a_residual_that_destabilises_a_slow_regulator():
     pid = make_baseline("pid", sc)
     stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
                                 kd_bar_s_per_m=12.0, tf_s=0.0)
-    sup = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    sup = Supervised(stiff, make_baseline("pid", sc), DT, T, flat())
     alone, supervised, reference = (cell_metrics(r, T, DT) for r in
                                     run_batches([stiff, sup, pid], sc, plants, 7))
     assert all(m["unstable"] for m in alone)
@@ -300,7 +308,7 @@ def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():
     # over and every figure is the pid's own, bit for bit.
     scen = ["initial_error", "impulse", "mass_mismatch", "heldout_bladder"]
     pid = make_baseline("pid", "nominal")
-    sup = Supervised(pid, Constant(1.0), DT, T)
+    sup = Supervised(pid, Constant(1.0), DT, T, flat())
     rep = evaluate(["pid"], scen)["results"]
     from agents.evaluate import Job, metrics, run_batch
 
@@ -364,7 +372,7 @@ def test_bumpless_transfer_keeps_carrying_the_load():
     # drops the load: over 5 mm, on a plain regulator and on 20 ms of dead time + 30 ms lag.
     sc = _sc(15.0)
     pid = make_baseline("pid", sc)
-    spec = SupervisorSpec(aperiodic_mm=0.01)
+    spec = flat(aperiodic_mm=0.01)
     plants = [{"extra_mass_kg": 1.6},
               {"extra_mass_kg": 1.6, "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03}]
     alone, bumpless, cold = run_batches(
@@ -381,7 +389,7 @@ def test_bumpless_transfer_keeps_carrying_the_load():
 
 def test_took_over_is_none_for_an_unsupervised_controller():
     assert took_over(make_baseline("pid", "nominal"), None) is None
-    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, flat())
     a, state = sup.predict(np.zeros(N_OBS))  # one observation in, one action out
     assert a.shape == (2,) and not took_over(sup, state)[0]
 
@@ -409,7 +417,10 @@ def test_config_names_the_bad_supervisor_field(tmp_path, bad, match):
 
 def test_config_supervisor_defaults_and_round_trip(tmp_path):
     cfg = _config(tmp_path, {"fallback": "mbfb", "aperiodic_mm": 2.5})
-    assert cfg.supervisor == SupervisorSpec(fallback="mbfb", aperiodic_mm=2.5)
+    # a flat section: the policy judged on divergence and limit cycle, the fallback to the end
+    assert cfg.supervisor == SupervisorSpec(
+        (Divergence(15.0, 0.5, None, 0), LimitCycle(2.5, 3.0, None, ARM_PERIODS)),
+        (Stage("policy", ("divergence", "limit_cycle")), Stage("mbfb")))
     assert cfg.supervisor.last_resort is None  # off unless asked for
     assert "ff alone" in _config(tmp_path, {"last_resort": "ff"}).supervisor.describe()
     assert "adaptive feedforward" in _config(tmp_path, {"last_resort": "afc"}).supervisor.describe()
