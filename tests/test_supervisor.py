@@ -508,8 +508,12 @@ def _stream(seed: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
     return obs, start
 
 
+# the default config's section before the cascade was declared (configs/ppo_residual.yaml at
+# d227f9f), which the run folders trained on it hold
+DEFAULT_FLAT = {"fallback": "pid", "aperiodic_mm": 0.4, "aperiodic_clip_mm": 0.5,
+                "persistent_mm": 2.0, "persistent_clip_mm": 3.0, "last_resort": "afc"}
 FLAT_SECTIONS = [
-    yaml.safe_load(open("configs/ppo_residual.yaml"))["mpa_gym"]["supervisor"],  # as of today
+    DEFAULT_FLAT,
     {},
     {"fallback": "mbfb", "aperiodic_mm": 2.5},
     {"fallback": "pid", "error_mm": 0.05, "last_resort": "afc"},
@@ -554,6 +558,18 @@ def test_a_flat_section_drives_exactly_as_before(section):
             reached |= set(RefSupervised.stage(s_old).tolist())
     # the stream exercises the cascade as far as the section goes
     assert reached == ({0, 1, 2} if old_spec.last_resort else {0, 1})
+
+
+def test_the_default_config_declares_the_dataclass_defaults_and_its_former_flat_section():
+    # Each default written once: the declared section of configs/ppo_residual.yaml is
+    # SupervisorSpec() (a change to either fails here), and it means what the default config's
+    # flat section meant, so runs trained on either evaluate alike (the flat section's numbers
+    # are pinned to the old code by test_a_flat_section_drives_exactly_as_before).
+    section = yaml.safe_load(open("configs/ppo_residual.yaml"))["mpa_gym"]["supervisor"]
+    assert set(section) == {"monitors", "stages"}
+    assert SupervisorSpec.from_config(section) == SupervisorSpec()
+    assert SupervisorSpec.from_config(DEFAULT_FLAT) == SupervisorSpec()
+    assert SupervisorSpec.from_config({"stages": section["stages"]}) == SupervisorSpec()
 
 
 # --- the reference: agents/supervisor.py as of d227f9f, before the cascade was declared ---
