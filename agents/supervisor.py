@@ -76,8 +76,9 @@ def _check_monitor(level_mm: Any, window_s: Any, clip_mm: Any, arm_periods: Any,
     """A monitor's values against their ranges; ``keys`` name them in the errors."""
     check_range(keys[0], level_mm, 0.0, LEVEL_MAX_MM, low_open=True, unit="mm")
     check_range(keys[1], window_s, 0.0, WINDOW_MAX_S, low_open=True, unit="s")
-    if clip_mm is not None:  # at or below the level, the monitor could never trip
-        check_range(keys[2], clip_mm, level_mm, LEVEL_MAX_MM, low_open=True, unit="mm")
+    if clip_mm is not None:
+        check_range(keys[2], clip_mm, level_mm, LEVEL_MAX_MM, low_open=True, unit="mm",
+                    note=f"above {keys[0]}: clipped at or below it, it could never trip")
     _check_periods(keys[3], arm_periods)
 
 

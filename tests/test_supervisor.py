@@ -25,6 +25,7 @@ from agents.supervisor import (
     GRACE_PERIODS,
     Divergence,
     LimitCycle,
+    Persistent,
     Stage,
     Supervised,
     SupervisorSpec,
@@ -428,6 +429,75 @@ def test_config_supervisor_defaults_and_round_trip(tmp_path):
     assert _config(tmp_path, None).supervisor is None
 
 
+DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit_cycle"]},
+                      {"controller": "pid", "monitors": ["divergence"], "grace_periods": 1},
+                      {"controller": "afc"}]
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"monitors": {"divergence": {"level_mm": 0}}},
+     r"supervisor\.monitors\.divergence\.level_mm=0 mm is outside the allowed range "
+     r"\(0, 100\] mm"),
+    ({"monitors": {"persistent": {"window_s": 45}}},
+     r"supervisor\.monitors\.persistent\.window_s=45 s is outside the allowed range "
+     r"\(0, 30\] s"),
+    ({"monitors": {"limit_cycle": {"clip_mm": 0.3}}},  # at or under its level: never trips
+     r"supervisor\.monitors\.limit_cycle\.clip_mm=0\.3 mm is outside the allowed range "
+     r"\(0\.4, 100\] mm"),
+    ({"monitors": {"limit_cycle": {"arm_periods": 1.5}}},
+     r"supervisor\.monitors\.limit_cycle\.arm_periods=1\.5 must be a whole number of "
+     r"reference periods in \[0, 100\]"),
+    ({"monitors": {"wobble": {}}},
+     r"supervisor\.monitors: unknown monitor 'wobble'; allowed \['divergence', "
+     r"'limit_cycle', 'persistent'\]"),
+    ({"monitors": {"divergence": {"level": 3}}},
+     r"supervisor\.monitors\.divergence=\{'level': 3\}: allowed keys are \['level_mm'"),
+    ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
+     r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
+    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},
+     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb'\]"),
+    ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "mbfb"}]},
+     r"supervisor\.stages\[2\]\.controller='mbfb': allowed \['ff', 'afc'\]"),
+    ({"stages": [{"controller": "policy", "monitors": ["drift"]}, {"controller": "pid"}]},
+     r"supervisor\.stages\[0\]\.monitors=\['drift'\]: allowed distinct names of "
+     r"supervisor\.monitors \['divergence', 'limit_cycle', 'persistent'\]"),
+    ({"stages": [{"controller": "policy"}, {"controller": "pid"}]},
+     r"supervisor\.stages\[0\]\.monitors=\[\]: every stage but the last needs a monitor"),
+    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "pid", "monitors": ["divergence"]}]},
+     r"supervisor\.stages\[1\]\.monitors=\['divergence'\]: the last stage drives to the end"),
+    ({"stages": [*DEFAULT_STAGES_CFG[:1],
+                 {"controller": "pid", "monitors": ["divergence"], "grace_periods": -1},
+                 DEFAULT_STAGES_CFG[2]]},
+     r"supervisor\.stages\[1\]\.grace_periods=-1 is outside the allowed range \[0, 100\]"),
+    ({"stages": [DEFAULT_STAGES_CFG[0]]},
+     r"supervisor\.stages has 1 stage\(s\): allowed 2 \(the policy, a fallback\) or 3"),
+    ({"stages": DEFAULT_STAGES_CFG, "fallback": "pid"},
+     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are \['monitors', 'stages'\]"),
+])
+def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
+    with pytest.raises(ConfigError, match=r"mpa_gym\." + match):
+        _config(tmp_path, bad)
+
+
+def test_config_declared_supervisor_states_only_what_differs(tmp_path):
+    # A monitor's omitted fields, the omitted monitors and the omitted stages are the
+    # defaults (SupervisorSpec's, the default config's); the spec keeps the monitors its
+    # stages name. Its describe() says who takes over on what.
+    cfg = _config(tmp_path, {"monitors": {"limit_cycle": {"level_mm": 0.6, "clip_mm": 0.8}},
+                             "stages": DEFAULT_STAGES_CFG})
+    assert cfg.supervisor == SupervisorSpec(
+        (Divergence(), LimitCycle(level_mm=0.6, clip_mm=0.8)),
+        (Stage("policy", ("divergence", "limit_cycle")), Stage("pid", ("divergence",), 1),
+         Stage("afc")))
+    assert cfg.supervisor.fallback == "pid" and cfg.supervisor.last_resort == "afc"
+    text = cfg.supervisor.describe()
+    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds 15 mm or ")
+    assert "exceeds 0.6 mm after the stage's first 2 periods" in text
+    assert "in pid's loop (given 1 period(s) to settle)" in text
+    two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})
+    assert two.supervisor.last_resort is None and two.supervisor.fallback == "mbfb"
+
+
 @REALTIME
 def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path):
     # A run whose config asks for a supervisor with a hair trigger (0.05 mm of error RMS) and
@@ -570,6 +640,136 @@ def test_the_default_config_declares_the_dataclass_defaults_and_its_former_flat_
     assert SupervisorSpec.from_config(section) == SupervisorSpec()
     assert SupervisorSpec.from_config(DEFAULT_FLAT) == SupervisorSpec()
     assert SupervisorSpec.from_config({"stages": section["stages"]}) == SupervisorSpec()
+
+
+# --- each monitor, and the cascade, against trip times derived by hand ----------------------
+#
+# A monitor's running mean z_j = z_{j-1} + α (s² − z_{j-1}), α = dt / (window + dt), from z = 0
+# under a constant |s| = S is S² (1 − (1 − α)^j) after its j-th armed step: it first exceeds
+# level L at the j* = ⌊x⌋ + 1-th, x = ln(1 − L²/S²) / ln(1 − α). The tests assert that step
+# exactly: the signals are exact in floating point (a constant, a square wave, a sequence
+# repeated every N steps) and x is kept 5 % of a step or more from a whole number, far beyond
+# the ~1e-13 relative error the recursion accumulates over a few hundred steps.
+
+
+def _stages(spec, errors, last=None):
+    """(steps, rows) the stage of each row at each step, under stand-in controllers, for
+    observations with X̂ − X = errors[k, row]."""
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, spec, last)
+    state, out = None, []
+    for k, e in enumerate(errors):
+        obs = np.zeros((errors.shape[1], N_OBS))
+        obs[:, OBS_XREF], obs[:, OBS_X] = 0.8 + e, 0.8
+        _, state = sup.predict(obs, state, np.full(errors.shape[1], k == 0))
+        out.append(took_over(sup, state))
+    return np.array(out)
+
+
+def _first(stages, stage=1):
+    """Per row, the first step at ``stage`` or beyond (None: never)."""
+    return [int(np.argmax(c >= stage)) if (c >= stage).any() else None for c in stages.T]
+
+
+def _trip_step(first_armed, level_mm, s_mm, window_s):
+    """The step at which a monitor armed at ``first_armed`` with z = 0 and |s| = s_mm trips."""
+    x = np.log(1 - (level_mm / s_mm) ** 2) / np.log(1 - DT / (window_s + DT))
+    assert 0.05 < x % 1 < 0.95, x  # clear of a rounding tie
+    return first_armed + int(np.floor(x))
+
+
+def _policy_judged_by(*monitors):
+    return SupervisorSpec(monitors, (Stage("policy", tuple(m.name for m in monitors)),
+                                     Stage("pid")))
+
+
+N_PER = round(T / DT)  # steps per reference period
+
+
+def test_divergence_monitor_trips_at_the_derived_step_from_the_start():
+    # Divergence(8 mm, 0.4 s): a 10 mm step at step 100 (1 s, before any arming: the
+    # divergence monitor is armed from the start); the same step with each sample clipped to
+    # ±9 mm (a later trip, at S = 9 mm); a 7.9 mm step, under the level, which never trips
+    # (z stays a convex combination of 0 and (7.9 mm)²).
+    steps = 400
+    k = np.arange(steps)[:, None]
+    errors = np.where(k >= 100, np.array([0.010, 0.0079]), 0.0)
+    got = _first(_stages(_policy_judged_by(Divergence(8.0, 0.4)), errors))
+    assert got == [_trip_step(100, 8.0, 10.0, 0.4), None]
+    clipped = _first(_stages(_policy_judged_by(Divergence(8.0, 0.4, clip_mm=9.0)), errors))
+    assert clipped == [_trip_step(100, 8.0, 9.0, 0.4), None]
+    assert got[0] < clipped[0] < 2 * N_PER
+
+
+def test_limit_cycle_monitor_trips_on_a_non_reference_oscillation_from_its_arming():
+    # LimitCycle(1.5 mm, 2 s, armed after 2 periods). Row 0: a ±1 mm square wave with a 1 s
+    # half-period, 1.5 cycles per reference period, so e_t − e_{t−T} = 2 e_t: |s| = 2 mm
+    # exactly from the second period on; the monitor accumulates from step 2N (its arming),
+    # so it trips at the derived step. Row 1: a 10 mm error that repeats every N steps
+    # exactly (a sag and a lag): its change over a period is zero and it never trips, though
+    # its RMS is five times the level. With each sample clipped to ±1.8 mm row 0 trips later,
+    # at S = 1.8 mm.
+    steps = 3 * N_PER + 300
+    k = np.arange(steps)
+    square = 0.001 * np.where((k // 100) % 2 == 0, 1.0, -1.0)
+    periodic = 0.010 * np.sin(2 * np.pi * (k % N_PER) / N_PER)
+    errors = np.stack([square, periodic], axis=1)
+    armed = ARM_PERIODS * N_PER
+    got = _first(_stages(_policy_judged_by(LimitCycle(1.5, 2.0, None)), errors))
+    assert got == [_trip_step(armed, 1.5, 2.0, 2.0), None]
+    clipped = _first(_stages(_policy_judged_by(LimitCycle(1.5, 2.0, 1.8)), errors))
+    assert clipped == [_trip_step(armed, 1.5, 1.8, 2.0), None]
+
+
+def test_persistent_monitor_trips_on_a_sag_with_its_own_window():
+    # Persistent(2 mm, 5 s, clip 3 mm, armed after 2 periods) beside a LimitCycle(1.5 mm, 2 s):
+    # each on its own window. Row 0: a 2.5 mm sag (a constant error: its change over a period
+    # is zero, so the limit cycle never sees it), tripping the persistent monitor at the step
+    # derived with 5 s. Row 1: a 4 mm sag, clipped to 3 mm: earlier, at S = 3 mm. Row 2: a
+    # 1.9 mm sag, under the level: never. Row 3: the ±1 mm square wave of the limit-cycle test
+    # (|e| = 1 mm, under the persistent level): the limit cycle trips it at its own 2 s step.
+    steps = 4 * N_PER
+    k = np.arange(steps)
+    square = 0.001 * np.where((k // 100) % 2 == 0, 1.0, -1.0)
+    errors = np.stack([np.full(steps, 0.0025), np.full(steps, 0.004), np.full(steps, 0.0019),
+                       square], axis=1)
+    armed = ARM_PERIODS * N_PER
+    spec = _policy_judged_by(Persistent(2.0, 5.0, 3.0), LimitCycle(1.5, 2.0, None))
+    assert _first(_stages(spec, errors)) == [_trip_step(armed, 2.0, 2.5, 5.0),
+                                             _trip_step(armed, 2.0, 3.0, 5.0), None,
+                                             _trip_step(armed, 1.5, 2.0, 2.0)]
+
+
+def test_cascade_hands_to_the_fallback_then_the_last_resort_after_its_grace():
+    # Policy judged by Divergence(8 mm, 0.4 s); pid by Persistent(2 mm, 5 s, armed at once)
+    # after one period of grace; then ff. Every row: a 10 mm step at step 100, so divergence
+    # hands all rows to pid at step i1 (derived). There the monitors restart from zero and
+    # the error becomes, row 0, 10 mm: the persistent monitor passes 2 mm within 21 steps, but
+    # pid's loop is judged only from i1 + 1 + N (its grace), where it trips; row 1, 2.5 mm:
+    # from zero the mean takes 512 steps to pass (2 mm)² (after the grace), the step derived;
+    # without the restart the ~8 mm² the 10 mm step had put into the mean would trip it at the
+    # end of the grace; row 2, 1 mm: pid holds, no last resort. The latches hold; the output
+    # is each stage's controller's (policy 0.0, pid 1.0, ff's zero residual).
+    steps = 3 * N_PER
+    k = np.arange(steps)[:, None]
+    i1 = _trip_step(100, 8.0, 10.0, 0.4)
+    after = np.array([0.010, 0.0025, 0.001])
+    errors = np.where(k > i1, after, np.where(k >= 100, 0.010, 0.0))
+    spec = SupervisorSpec((Divergence(8.0, 0.4), Persistent(2.0, 5.0, None, 0)),
+                          (Stage("policy", ("divergence",)),
+                           Stage("pid", ("persistent",), grace_periods=1), Stage("ff")))
+    stages = _stages(spec, errors, make_baseline("ff"))
+    assert _first(stages, 1) == [i1] * 3
+    since = i1 + 1  # the fallback's first step, from which its monitors and grace count
+    assert _first(stages, 2) == [since + N_PER, _trip_step(since, 2.0, 2.5, 5.0), None]
+    for c in stages.T:
+        assert np.all(np.diff(c) >= 0)  # a latch: never back
+    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, spec, make_baseline("ff"))
+    state = None
+    for j, e in enumerate(errors):
+        obs = np.zeros((3, N_OBS))
+        obs[:, OBS_XREF], obs[:, OBS_X] = 0.8 + e, 0.8
+        a, state = sup.predict(obs, state, np.full(3, j == 0))
+        np.testing.assert_array_equal(a[:, 0], np.array([0.5, 1.0, 0.0])[stages[j]])
 
 
 # --- the reference: agents/supervisor.py as of d227f9f, before the cascade was declared ---
