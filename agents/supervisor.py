@@ -282,6 +282,7 @@ class SupervisorSpec:
         stages = _stages(value.get("stages"))
         used = {m for s in stages for m in s.monitors}
         monitors = _monitors(value.get("monitors"))
+        # the monitors the stages use (if they name none known, all: the error lists them)
         return cls(tuple(m for m in monitors if m.name in used) or monitors, stages)
 
     @classmethod
