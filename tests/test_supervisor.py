@@ -4,17 +4,22 @@ the plant, never drives a healthy loop, and the config names what is wrong with 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
 from conftest import REALTIME, serving
-from mpa_gym.agents.controllers.baselines import BAR, make_baseline
+from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
     GRACE_PERIODS,
-    M_STAGE,
+    Divergence,
+    LimitCycle,
+    Persistent,
+    Stage,
     Supervised,
     SupervisorSpec,
     took_over,
@@ -29,6 +34,7 @@ from mpa_gym.agents.training.train import train
 import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.design.feedforward import affine_in_pressures
+from mpa_gym.model.params import check_range
 from mpa_gym.task.contract import (
     OBS_COS,
     OBS_KREF,
@@ -43,6 +49,12 @@ from mpa_gym.task.contract import (
 
 DT, T = 0.01, 3.0
 N_OBS = len(obs_names(residual=True))
+
+
+def flat(**keys) -> SupervisorSpec:
+    """The spec of a flat ``supervisor`` section (the form run folders hold; its omitted keys
+    mean what they always did: no clip, no persistent monitor, no last resort)."""
+    return SupervisorSpec.from_config(keys)
 
 
 class Constant:
@@ -83,7 +95,7 @@ def test_monitor_trips_on_an_aperiodic_oscillation_and_not_on_a_periodic_error()
     periodic = 0.010 * np.sin(2 * np.pi * t / T)
     osc = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * (21.5 / T) * t)
     errors = np.stack([periodic, periodic + osc, np.where(t >= 1.0, 0.02, 0.0)], axis=1)
-    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, flat())
     drove = _drive(sup, errors) > 0.5
     first = [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
              for r in range(3)]
@@ -110,7 +122,7 @@ def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillat
     big = 0.003 * np.sqrt(2) * np.sin(2 * np.pi * f * t)
     errors = np.stack([kick, small, big], axis=1)
     drove = {clip: _drive(Supervised(Constant(0.0), Constant(1.0), DT, T,
-                                     SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=clip)),
+                                     flat(aperiodic_mm=2.0, aperiodic_clip_mm=clip)),
                           errors) > 0.5 for clip in (None, 3.0)}
     first = {clip: [np.flatnonzero(d[:, r])[0] if d[:, r].any() else None for r in range(3)]
              for clip, d in drove.items()}
@@ -119,7 +131,7 @@ def test_clipped_limit_cycle_monitor_lets_a_kick_pass_and_still_catches_oscillat
     assert first[3.0][2] is not None and first[3.0][2] >= first[None][2]
     with pytest.raises(ValueError, match=r"aperiodic_clip_mm=1.5 mm is outside the allowed "
                                          r"range \(2, 100\] mm"):
-        SupervisorSpec(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
+        flat(aperiodic_mm=2.0, aperiodic_clip_mm=1.5)
 
 
 def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass():
@@ -138,33 +150,33 @@ def test_persistent_error_monitor_catches_a_periodic_error_and_lets_a_kick_pass(
     kick = np.where(t >= 7.0, 0.020 * np.exp(-np.clip(t - 7.0, 0.0, None) / 0.1), 0.0)
     errors = np.stack([0.004 * wave, 0.001 * wave + kick], axis=1)
 
-    def first(spec):  # the limit-cycle monitor set out of the way (it sees the kick again)
-        spec = dataclasses.replace(spec, aperiodic_mm=100.0)
+    def first(**keys):  # the limit-cycle monitor set out of the way (it sees the kick again)
+        spec = flat(**keys, aperiodic_mm=100.0)
         drove = _drive(Supervised(Constant(0.0), Constant(1.0), DT, T, spec), errors) > 0.5
         return [np.flatnonzero(drove[:, r])[0] * DT if drove[:, r].any() else None
                 for r in range(2)]
 
     m = np.mean(np.clip(0.004 * wave, -0.003, 0.003) ** 2)
     expected = ARM_PERIODS * T + 3.0 * np.log(m / (m - 0.002 ** 2))
-    clipped = first(SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=3.0))
+    clipped = first(persistent_mm=2.0, persistent_clip_mm=3.0)
     assert clipped[0] == pytest.approx(expected, abs=0.8) and clipped[1] is None
-    assert first(SupervisorSpec(persistent_mm=2.0))[1] is not None  # the clip is what passes it
-    assert first(SupervisorSpec()) == [None, None]  # not watched unless set
+    assert first(persistent_mm=2.0)[1] is not None  # the clip is what passes it
+    assert first() == [None, None]  # not watched unless set
     # the fallback's own loop is not judged on it: with a last resort, the fallback keeps
     # driving under the same periodic error for six periods after the monitor re-arms (two
     # periods into the fallback's stage), where the policy's stage tripped 3.4 s after arming
     t8 = DT * np.arange(round(clipped[0] / DT) + round((ARM_PERIODS + 6) * T / DT))
     sup = Supervised(Constant(0.0), Constant(1.0), DT, T,
-                     SupervisorSpec(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
-                                    last_resort="ff"), make_baseline("ff"))
+                     flat(aperiodic_mm=100.0, persistent_mm=2.0, persistent_clip_mm=3.0,
+                          last_resort="ff"), make_baseline("ff"))
     out = _drive(sup, 0.004 * np.sin(2 * np.pi * t8 / T)[:, None])
     assert np.all(out[round(clipped[0] / DT) + 1:] == 1.0)
     with pytest.raises(ValueError, match=r"persistent_clip_mm=1.5 mm is outside the allowed "
                                          r"range \(2, 100\] mm"):
-        SupervisorSpec(persistent_mm=2.0, persistent_clip_mm=1.5)
+        flat(persistent_mm=2.0, persistent_clip_mm=1.5)
     with pytest.raises(ValueError,
                        match=r"persistent_clip_mm=3\.0 needs supervisor\.persistent_mm"):
-        SupervisorSpec(persistent_clip_mm=3.0)
+        flat(persistent_clip_mm=3.0)
 
 
 def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
@@ -178,8 +190,8 @@ def test_last_resort_takes_over_when_the_fallback_loop_trips_too():
     errors = np.stack([np.where(t >= 1.0, 0.02, 0.0), 0.010 * np.sin(2 * np.pi * t / T)],
                       axis=1)
     chained = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T,
-                                SupervisorSpec(last_resort="ff"), make_baseline("ff")), errors)
-    plain = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T), errors)
+                                flat(last_resort="ff"), make_baseline("ff")), errors)
+    plain = _drive(Supervised(Constant(0.5), Constant(1.0), DT, T, flat()), errors)
     to_fallback = np.flatnonzero(chained[:, 0] == 1.0)[0] * DT
     to_ff = np.flatnonzero(chained[:, 0] == 0.0)[0] * DT
     assert 1.38 < to_fallback < 1.45
@@ -198,7 +210,7 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
     # saw meanwhile, leave it untouched). Without one, the spec is refused by name.
     t = DT * np.arange(round(3 * T / DT))
     errors = np.stack([np.where(t >= 1.0, 0.02, 0.0), np.where(t >= 2.5, 0.02, 0.0)], axis=1)
-    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, SupervisorSpec(last_resort="afc"),
+    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, flat(last_resort="afc"),
                      make_baseline("afc"))
     state, got, want = None, [[], []], [[], []]
     fresh = [None, None]
@@ -207,10 +219,10 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
         obs[:, OBS_XREF], obs[:, OBS_X], obs[:, OBS_KREF] = 0.8 + e, 0.8, 545.0 / OBS_KREF_SCALE
         phase = 2 * np.pi * t[k] / T
         obs[:, OBS_SIN], obs[:, OBS_COS] = np.sin(phase), np.cos(phase)
-        stage_before = np.zeros(2) if state is None else state[2][:, M_STAGE].copy()
+        stage_before = np.zeros(2) if state is None else Supervised.stage(state)
         a, state = sup.predict(obs, state, np.full(2, k == 0))
         for r in range(2):
-            if state[2][r, M_STAGE] >= 2.0:
+            if Supervised.stage(state)[r] >= 2:
                 start = np.array([stage_before[r] < 2.0])
                 b, fresh[r] = make_baseline("afc").predict(obs[r:r + 1], fresh[r], start)
                 got[r].append(a[r])
@@ -220,7 +232,7 @@ def test_a_last_resort_with_state_starts_from_rest_on_each_row_it_takes_over():
     for r in range(2):
         np.testing.assert_array_equal(np.array(got[r]), np.array(want[r]))
     with pytest.raises(ValueError, match=r"last_resort='afc' needs its controller"):
-        Supervised(Constant(0.5), Constant(1.0), DT, T, SupervisorSpec(last_resort="afc"))
+        Supervised(Constant(0.5), Constant(1.0), DT, T, flat(last_resort="afc"))
 
 
 def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
@@ -235,9 +247,9 @@ def test_last_resort_keeps_the_feedforward_where_the_fallback_is_unstable_too():
     pid = make_baseline("pid", sc)
     stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
                                 kd_bar_s_per_m=12.0, tf_s=0.0)
-    plain = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    plain = Supervised(stiff, make_baseline("pid", sc), DT, T, flat())
     chained, adaptive = (Supervised(stiff, make_baseline("pid", sc), DT, T,
-                                    SupervisorSpec(last_resort=name), make_baseline(name, sc))
+                                    flat(last_resort=name), make_baseline(name, sc))
                          for name in ("ff", "afc"))
     ff = make_baseline("ff", sc)
     m_pid, m_plain, m_chained, m_adaptive, m_ff = (
@@ -277,7 +289,7 @@ def test_fallback_rescues_a_residual_that_destabilises_a_slow_regulator():
     pid = make_baseline("pid", sc)
     stiff = dataclasses.replace(pid, kp_bar_per_m=80.0, ki_bar_per_m_s=3000.0,
                                 kd_bar_s_per_m=12.0, tf_s=0.0)
-    sup = Supervised(stiff, make_baseline("pid", sc), DT, T)
+    sup = Supervised(stiff, make_baseline("pid", sc), DT, T, flat())
     alone, supervised, reference = (cell_metrics(r, T, DT) for r in
                                     run_batches([stiff, sup, pid], sc, plants, 7))
     assert all(m["unstable"] for m in alone)
@@ -297,7 +309,7 @@ def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():
     # over and every figure is the pid's own, bit for bit.
     scen = ["initial_error", "impulse", "mass_mismatch", "heldout_bladder"]
     pid = make_baseline("pid", "nominal")
-    sup = Supervised(pid, Constant(1.0), DT, T)
+    sup = Supervised(pid, Constant(1.0), DT, T, flat())
     rep = evaluate(["pid"], scen)["results"]
     from mpa_gym.agents.evaluation.episodes import Job, metrics, run_episodes
 
@@ -361,7 +373,7 @@ def test_bumpless_transfer_keeps_carrying_the_load():
     # drops the load: over 5 mm, on a plain regulator and on 20 ms of dead time + 30 ms lag.
     sc = _sc(15.0)
     pid = make_baseline("pid", sc)
-    spec = SupervisorSpec(aperiodic_mm=0.01)
+    spec = flat(aperiodic_mm=0.01)
     plants = [{"extra_mass_kg": 1.6},
               {"extra_mass_kg": 1.6, "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03}]
     alone, bumpless, cold = run_batches(
@@ -378,7 +390,7 @@ def test_bumpless_transfer_keeps_carrying_the_load():
 
 def test_took_over_is_none_for_an_unsupervised_controller():
     assert took_over(make_baseline("pid", "nominal"), None) is None
-    sup = Supervised(Constant(0.0), Constant(1.0), DT, T)
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, flat())
     a, state = sup.predict(np.zeros(N_OBS))  # one observation in, one action out
     assert a.shape == (2,) and not took_over(sup, state)[0]
 
@@ -406,12 +418,84 @@ def test_config_names_the_bad_supervisor_field(tmp_path, bad, match):
 
 def test_config_supervisor_defaults_and_round_trip(tmp_path):
     cfg = _config(tmp_path, {"fallback": "mbfb", "aperiodic_mm": 2.5})
-    assert cfg.supervisor == SupervisorSpec(fallback="mbfb", aperiodic_mm=2.5)
+    # a flat section: the policy judged on divergence and limit cycle, the fallback to the end
+    assert cfg.supervisor == SupervisorSpec(
+        (Divergence(15.0, 0.5, None, 0), LimitCycle(2.5, 3.0, None, ARM_PERIODS)),
+        (Stage("policy", ("divergence", "limit_cycle")), Stage("mbfb")))
     assert cfg.supervisor.last_resort is None  # off unless asked for
     assert "ff alone" in _config(tmp_path, {"last_resort": "ff"}).supervisor.describe()
     assert "adaptive feedforward" in _config(tmp_path, {"last_resort": "afc"}).supervisor.describe()
     assert "mbfb takes over" in cfg.supervisor.describe()
     assert _config(tmp_path, None).supervisor is None
+
+
+DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit_cycle"]},
+                      {"controller": "pid", "monitors": ["divergence"], "grace_periods": 1},
+                      {"controller": "afc"}]
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"monitors": {"divergence": {"level_mm": 0}}},
+     r"supervisor\.monitors\.divergence\.level_mm=0 mm is outside the allowed range "
+     r"\(0, 100\] mm"),
+    ({"monitors": {"persistent": {"window_s": 45}}},
+     r"supervisor\.monitors\.persistent\.window_s=45 s is outside the allowed range "
+     r"\(0, 30\] s"),
+    ({"monitors": {"limit_cycle": {"clip_mm": 0.3}}},  # at or under its level: never trips
+     r"supervisor\.monitors\.limit_cycle\.clip_mm=0\.3 mm is outside the allowed range "
+     r"\(0\.4, 100\] mm"),
+    ({"monitors": {"limit_cycle": {"arm_periods": 1.5}}},
+     r"supervisor\.monitors\.limit_cycle\.arm_periods=1\.5 must be a whole number of "
+     r"reference periods in \[0, 100\]"),
+    ({"monitors": {"wobble": {}}},
+     r"supervisor\.monitors: unknown monitor 'wobble'; allowed \['divergence', "
+     r"'limit_cycle', 'persistent'\]"),
+    ({"monitors": {"divergence": {"level": 3}}},
+     r"supervisor\.monitors\.divergence=\{'level': 3\}: allowed keys are \['level_mm'"),
+    ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
+     r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
+    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},
+     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb'\]"),
+    ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "mbfb"}]},
+     r"supervisor\.stages\[2\]\.controller='mbfb': allowed \['ff', 'afc'\]"),
+    ({"stages": [{"controller": "policy", "monitors": ["drift"]}, {"controller": "pid"}]},
+     r"supervisor\.stages\[0\]\.monitors=\['drift'\]: allowed distinct names of "
+     r"supervisor\.monitors \['divergence', 'limit_cycle', 'persistent'\]"),
+    ({"stages": [{"controller": "policy"}, {"controller": "pid"}]},
+     r"supervisor\.stages\[0\]\.monitors=\[\]: every stage but the last needs a monitor"),
+    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "pid", "monitors": ["divergence"]}]},
+     r"supervisor\.stages\[1\]\.monitors=\['divergence'\]: the last stage drives to the end"),
+    ({"stages": [*DEFAULT_STAGES_CFG[:1],
+                 {"controller": "pid", "monitors": ["divergence"], "grace_periods": -1},
+                 DEFAULT_STAGES_CFG[2]]},
+     r"supervisor\.stages\[1\]\.grace_periods=-1 is outside the allowed range \[0, 100\]"),
+    ({"stages": [DEFAULT_STAGES_CFG[0]]},
+     r"supervisor\.stages has 1 stage\(s\): allowed 2 \(the policy, a fallback\) or 3"),
+    ({"stages": DEFAULT_STAGES_CFG, "fallback": "pid"},
+     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are \['monitors', 'stages'\]"),
+])
+def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
+    with pytest.raises(ConfigError, match=r"mpa_gym\." + match):
+        _config(tmp_path, bad)
+
+
+def test_config_declared_supervisor_states_only_what_differs(tmp_path):
+    # A monitor's omitted fields, the omitted monitors and the omitted stages are the
+    # defaults (SupervisorSpec's, the default config's); the spec keeps the monitors its
+    # stages name. Its describe() says who takes over on what.
+    cfg = _config(tmp_path, {"monitors": {"limit_cycle": {"level_mm": 0.6, "clip_mm": 0.8}},
+                             "stages": DEFAULT_STAGES_CFG})
+    assert cfg.supervisor == SupervisorSpec(
+        (Divergence(), LimitCycle(level_mm=0.6, clip_mm=0.8)),
+        (Stage("policy", ("divergence", "limit_cycle")), Stage("pid", ("divergence",), 1),
+         Stage("afc")))
+    assert cfg.supervisor.fallback == "pid" and cfg.supervisor.last_resort == "afc"
+    text = cfg.supervisor.describe()
+    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds 15 mm or ")
+    assert "exceeds 0.6 mm after the stage's first 2 periods" in text
+    assert "in pid's loop (given 1 period(s) to settle)" in text
+    two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})
+    assert two.supervisor.last_resort is None and two.supervisor.fallback == "mbfb"
 
 
 @REALTIME
@@ -450,3 +534,437 @@ def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path)
     assert [e["t_s"] for e in events] == [steps[first]["t_s"], steps[last]["t_s"]]
     assert out["episodes"][0]["fallback_s"] == steps[first]["t_s"]
     assert out["episodes"][0]["last_resort_s"] == steps[last]["t_s"]
+
+
+# --- today's flat sections keep their numbers ---------------------------------------------
+
+class Wobbly:
+    """A stateless stand-in for a learned residual whose action depends on the observation (so
+    that the command the fallback takes over, the mean of the policy's last period, matters)."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        obs = np.atleast_2d(observation)
+        e = obs[:, OBS_XREF] - obs[:, OBS_X]
+        a = np.stack([0.3 * np.tanh(e / 0.004), -0.2 * np.tanh(e / 0.009) + 0.05 * obs[:, OBS_SIN]],
+                     axis=-1).astype(np.float32)
+        return (a[0] if np.ndim(observation) == 1 else a), state
+
+
+def _stream(seed: int, n_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """(observations (steps, 5, N_OBS), episode starts (steps, 5)): five rows of a synthetic loop
+    on the default reference: a growing oscillation at 1.7 Hz, a 25 mm kick at 7 s decaying with
+    0.15 s on a 1 mm periodic error, a sag of 2.6 mm with noise, a ramp that diverges from 4 s,
+    and a 2.5 mm periodic error whose row starts a new episode at 6 s and 11 s."""
+    rng = np.random.default_rng(seed)
+    t = DT * np.arange(n_steps)
+    wave = np.sin(2 * np.pi * t / T)
+    kick = np.where(t >= 7.0, 0.025 * np.exp(-np.clip(t - 7.0, 0.0, None) / 0.15), 0.0)
+    e = np.stack([1e-4 * np.exp(t / 2.0).clip(max=300.0) * np.sin(2 * np.pi * 1.7 * t),
+                  0.001 * wave + kick,
+                  0.0026 + 0.0004 * rng.standard_normal(n_steps),
+                  np.where(t >= 4.0, 0.01 * (t - 4.0) ** 2, 0.0) + 0.0002 * wave,
+                  0.0025 * wave + 0.0003 * rng.standard_normal(n_steps)], axis=1)
+    obs = np.zeros((n_steps, e.shape[1], N_OBS))
+    phase = 2 * np.pi * (t / T)[:, None]
+    obs[..., OBS_XREF] = 0.8 + 0.02 * np.sin(phase)
+    obs[..., OBS_X] = obs[..., OBS_XREF] - e
+    obs[..., OBS_VREF] = 0.02 * 2 * np.pi / T * np.cos(phase)
+    obs[..., OBS_V] = obs[..., OBS_VREF] - np.gradient(e, DT, axis=0)
+    obs[..., OBS_SIN], obs[..., OBS_COS] = np.sin(phase), np.cos(phase)
+    obs[..., OBS_KREF] = 545.0 / OBS_KREF_SCALE
+    start = np.zeros((n_steps, e.shape[1]), dtype=bool)
+    start[0] = True
+    start[[600, 1100], 4] = True
+    return obs, start
+
+
+# the default config's section before the cascade was declared (configs/ppo_residual.yaml at
+# d227f9f), which the run folders trained on it hold
+DEFAULT_FLAT = {"fallback": "pid", "aperiodic_mm": 0.4, "aperiodic_clip_mm": 0.5,
+                "persistent_mm": 2.0, "persistent_clip_mm": 3.0, "last_resort": "afc"}
+FLAT_SECTIONS = [
+    DEFAULT_FLAT,
+    {},
+    {"fallback": "mbfb", "aperiodic_mm": 2.5},
+    {"fallback": "pid", "error_mm": 0.05, "last_resort": "afc"},
+    {"error_mm": 8.0, "error_window_s": 0.3, "aperiodic_mm": 1.0, "aperiodic_window_s": 2.0,
+     "aperiodic_clip_mm": 1.5, "persistent_mm": 2.0, "last_resort": "ff"},
+    {"fallback": "mbfb", "persistent_mm": 2.2, "persistent_clip_mm": 2.5, "last_resort": "afc"},
+]
+
+
+@pytest.mark.parametrize("section", FLAT_SECTIONS, ids=range(len(FLAT_SECTIONS)))
+def test_a_flat_section_drives_exactly_as_before(section):
+    # A run folder written before the cascade was declared holds its supervisor as flat keys
+    # (config.yaml keeps the file's content). Read by SupervisorSpec.from_config and run by
+    # Supervised on a fixed observation stream the code did not produce (_stream), it gives
+    # the stages and actions of the supervisor of that time (RefSupervised below, a verbatim
+    # copy), bit for bit: same float64 running means, same comparisons, same controllers
+    # called with the same states. Batched rows (with mid-stream episode starts) and a single
+    # observation at a time (the rig's path).
+    obs, start = _stream(7, round(5 * T / DT))
+    flat = dict(section)
+    old_spec = RefSupervisorSpec(**flat)
+    new_spec = SupervisorSpec.from_config(flat)
+    assert new_spec.fallback == old_spec.fallback
+    assert new_spec.last_resort == old_spec.last_resort
+
+    def build(cls, spec):
+        last = None if spec.last_resort is None else make_baseline(spec.last_resort)
+        return cls(Wobbly(), make_baseline(spec.fallback), DT, T, spec, last)
+
+    old, new = build(RefSupervised, old_spec), build(Supervised, new_spec)
+    reached = set()
+    for rows in (slice(None), 3):  # the batch, then row 3 alone, one observation at a time
+        s_old = s_new = None
+        for k in range(obs.shape[0]):
+            o, st = obs[k, rows], start[k, rows]
+            a_old, s_old = old.predict(o, s_old, np.atleast_1d(st))
+            a_new, s_new = new.predict(o, s_new, np.atleast_1d(st))
+            assert a_new.dtype == a_old.dtype and a_new.shape == a_old.shape, k
+            np.testing.assert_array_equal(a_new, a_old, err_msg=f"step {k}")
+            np.testing.assert_array_equal(took_over(new, s_new), RefSupervised.stage(s_old),
+                                          err_msg=f"step {k}")
+            reached |= set(RefSupervised.stage(s_old).tolist())
+    # the stream exercises the cascade as far as the section goes
+    assert reached == ({0, 1, 2} if old_spec.last_resort else {0, 1})
+
+
+def test_the_default_config_declares_the_dataclass_defaults_and_its_former_flat_section():
+    # Each default written once: the declared section of configs/ppo_residual.yaml is
+    # SupervisorSpec() (a change to either fails here), and it means what the default config's
+    # flat section meant, so runs trained on either evaluate alike (the flat section's numbers
+    # are pinned to the old code by test_a_flat_section_drives_exactly_as_before).
+    section = yaml.safe_load(open("configs/ppo_residual.yaml"))["mpa_gym"]["supervisor"]
+    assert set(section) == {"monitors", "stages"}
+    assert SupervisorSpec.from_config(section) == SupervisorSpec()
+    assert SupervisorSpec.from_config(DEFAULT_FLAT) == SupervisorSpec()
+    assert SupervisorSpec.from_config({"stages": section["stages"]}) == SupervisorSpec()
+
+
+# --- each monitor, and the cascade, against trip times derived by hand ----------------------
+#
+# A monitor's running mean z_j = z_{j-1} + α (s² − z_{j-1}), α = dt / (window + dt), from z = 0
+# under a constant |s| = S is S² (1 − (1 − α)^j) after its j-th armed step: it first exceeds
+# level L at the j* = ⌊x⌋ + 1-th, x = ln(1 − L²/S²) / ln(1 − α). The tests assert that step
+# exactly: the signals are exact in floating point (a constant, a square wave, a sequence
+# repeated every N steps) and x is kept 5 % of a step or more from a whole number, far beyond
+# the ~1e-13 relative error the recursion accumulates over a few hundred steps.
+
+
+def _stages(spec, errors, last=None):
+    """(steps, rows) the stage of each row at each step, under stand-in controllers, for
+    observations with X̂ − X = errors[k, row]."""
+    sup = Supervised(Constant(0.0), Constant(1.0), DT, T, spec, last)
+    state, out = None, []
+    for k, e in enumerate(errors):
+        obs = np.zeros((errors.shape[1], N_OBS))
+        obs[:, OBS_XREF], obs[:, OBS_X] = 0.8 + e, 0.8
+        _, state = sup.predict(obs, state, np.full(errors.shape[1], k == 0))
+        out.append(took_over(sup, state))
+    return np.array(out)
+
+
+def _first(stages, stage=1):
+    """Per row, the first step at ``stage`` or beyond (None: never)."""
+    return [int(np.argmax(c >= stage)) if (c >= stage).any() else None for c in stages.T]
+
+
+def _trip_step(first_armed, level_mm, s_mm, window_s):
+    """The step at which a monitor armed at ``first_armed`` with z = 0 and |s| = s_mm trips."""
+    x = np.log(1 - (level_mm / s_mm) ** 2) / np.log(1 - DT / (window_s + DT))
+    assert 0.05 < x % 1 < 0.95, x  # clear of a rounding tie
+    return first_armed + int(np.floor(x))
+
+
+def _policy_judged_by(*monitors):
+    return SupervisorSpec(monitors, (Stage("policy", tuple(m.name for m in monitors)),
+                                     Stage("pid")))
+
+
+N_PER = round(T / DT)  # steps per reference period
+
+
+def test_divergence_monitor_trips_at_the_derived_step_from_the_start():
+    # Divergence(8 mm, 0.4 s): a 10 mm step at step 100 (1 s, before any arming: the
+    # divergence monitor is armed from the start); the same step with each sample clipped to
+    # ±9 mm (a later trip, at S = 9 mm); a 7.9 mm step, under the level, which never trips
+    # (z stays a convex combination of 0 and (7.9 mm)²).
+    steps = 400
+    k = np.arange(steps)[:, None]
+    errors = np.where(k >= 100, np.array([0.010, 0.0079]), 0.0)
+    got = _first(_stages(_policy_judged_by(Divergence(8.0, 0.4)), errors))
+    assert got == [_trip_step(100, 8.0, 10.0, 0.4), None]
+    clipped = _first(_stages(_policy_judged_by(Divergence(8.0, 0.4, clip_mm=9.0)), errors))
+    assert clipped == [_trip_step(100, 8.0, 9.0, 0.4), None]
+    assert got[0] < clipped[0] < 2 * N_PER
+
+
+def test_limit_cycle_monitor_trips_on_a_non_reference_oscillation_from_its_arming():
+    # LimitCycle(1.5 mm, 2 s, armed after 2 periods). Row 0: a ±1 mm square wave with a 1 s
+    # half-period, 1.5 cycles per reference period, so e_t − e_{t−T} = 2 e_t: |s| = 2 mm
+    # exactly from the second period on; the monitor accumulates from step 2N (its arming),
+    # so it trips at the derived step. Row 1: a 10 mm error that repeats every N steps
+    # exactly (a sag and a lag): its change over a period is zero and it never trips, though
+    # its RMS is five times the level. With each sample clipped to ±1.8 mm row 0 trips later,
+    # at S = 1.8 mm.
+    steps = 3 * N_PER + 300
+    k = np.arange(steps)
+    square = 0.001 * np.where((k // 100) % 2 == 0, 1.0, -1.0)
+    periodic = 0.010 * np.sin(2 * np.pi * (k % N_PER) / N_PER)
+    errors = np.stack([square, periodic], axis=1)
+    armed = ARM_PERIODS * N_PER
+    got = _first(_stages(_policy_judged_by(LimitCycle(1.5, 2.0, None)), errors))
+    assert got == [_trip_step(armed, 1.5, 2.0, 2.0), None]
+    clipped = _first(_stages(_policy_judged_by(LimitCycle(1.5, 2.0, 1.8)), errors))
+    assert clipped == [_trip_step(armed, 1.5, 1.8, 2.0), None]
+
+
+def test_persistent_monitor_trips_on_a_sag_with_its_own_window():
+    # Persistent(2 mm, 5 s, clip 3 mm, armed after 2 periods) beside a LimitCycle(1.5 mm, 2 s):
+    # each on its own window. Row 0: a 2.5 mm sag (a constant error: its change over a period
+    # is zero, so the limit cycle never sees it), tripping the persistent monitor at the step
+    # derived with 5 s. Row 1: a 4 mm sag, clipped to 3 mm: earlier, at S = 3 mm. Row 2: a
+    # 1.9 mm sag, under the level: never. Row 3: the ±1 mm square wave of the limit-cycle test
+    # (|e| = 1 mm, under the persistent level): the limit cycle trips it at its own 2 s step.
+    steps = 4 * N_PER
+    k = np.arange(steps)
+    square = 0.001 * np.where((k // 100) % 2 == 0, 1.0, -1.0)
+    errors = np.stack([np.full(steps, 0.0025), np.full(steps, 0.004), np.full(steps, 0.0019),
+                       square], axis=1)
+    armed = ARM_PERIODS * N_PER
+    spec = _policy_judged_by(Persistent(2.0, 5.0, 3.0), LimitCycle(1.5, 2.0, None))
+    assert _first(_stages(spec, errors)) == [_trip_step(armed, 2.0, 2.5, 5.0),
+                                             _trip_step(armed, 2.0, 3.0, 5.0), None,
+                                             _trip_step(armed, 1.5, 2.0, 2.0)]
+
+
+def test_cascade_hands_to_the_fallback_then_the_last_resort_after_its_grace():
+    # Policy judged by Divergence(8 mm, 0.4 s); pid by Persistent(2 mm, 5 s, armed at once)
+    # after one period of grace; then ff. Every row: a 10 mm step at step 100, so divergence
+    # hands all rows to pid at step i1 (derived). There the monitors restart from zero and
+    # the error becomes, row 0, 10 mm: the persistent monitor passes 2 mm within 21 steps, but
+    # pid's loop is judged only from i1 + 1 + N (its grace), where it trips; row 1, 2.5 mm:
+    # from zero the mean takes 512 steps to pass (2 mm)² (after the grace), the step derived;
+    # without the restart the ~8 mm² the 10 mm step had put into the mean would trip it at the
+    # end of the grace; row 2, 1 mm: pid holds, no last resort. The latches hold; the output
+    # is each stage's controller's (policy 0.0, pid 1.0, ff's zero residual).
+    steps = 3 * N_PER
+    k = np.arange(steps)[:, None]
+    i1 = _trip_step(100, 8.0, 10.0, 0.4)
+    after = np.array([0.010, 0.0025, 0.001])
+    errors = np.where(k > i1, after, np.where(k >= 100, 0.010, 0.0))
+    spec = SupervisorSpec((Divergence(8.0, 0.4), Persistent(2.0, 5.0, None, 0)),
+                          (Stage("policy", ("divergence",)),
+                           Stage("pid", ("persistent",), grace_periods=1), Stage("ff")))
+    stages = _stages(spec, errors, make_baseline("ff"))
+    assert _first(stages, 1) == [i1] * 3
+    since = i1 + 1  # the fallback's first step, from which its monitors and grace count
+    assert _first(stages, 2) == [since + N_PER, _trip_step(since, 2.0, 2.5, 5.0), None]
+    for c in stages.T:
+        assert np.all(np.diff(c) >= 0)  # a latch: never back
+    sup = Supervised(Constant(0.5), Constant(1.0), DT, T, spec, make_baseline("ff"))
+    state = None
+    for j, e in enumerate(errors):
+        obs = np.zeros((3, N_OBS))
+        obs[:, OBS_XREF], obs[:, OBS_X] = 0.8 + e, 0.8
+        a, state = sup.predict(obs, state, np.full(3, j == 0))
+        np.testing.assert_array_equal(a[:, 0], np.array([0.5, 1.0, 0.0])[stages[j]])
+
+
+# --- the reference: agents/controllers/supervisor.py as of d227f9f, before the cascade was declared ---
+# Copied verbatim (its names prefixed Ref / REF_, the contract columns aliased) so that the
+# equivalence test needs nothing outside this repository. Do not edit: it is the yardstick.
+OX, OXR = OBS_X, OBS_XREF
+
+REF_FALLBACKS = ("pid", "mbfb")
+# the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
+REF_LAST_RESORTS = {"ff": "ff alone",
+                "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
+REF_ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
+REF_GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
+REF_POLICY, REF_FALLBACK, REF_LAST_RESORT = 0, 1, 2  # the stages: who drives
+# the monitor's columns per row (``RefSupervised``): the two running means, the stage, the steps
+# taken, the step the stage began; then the ring buffers
+REF_M_ERR, REF_M_AP, REF_M_STAGE, REF_M_STEP, REF_M_SINCE, REF_M_PER = range(6)
+REF_M_RING = 6
+
+
+@dataclass(frozen=True)
+class RefSupervisorSpec:
+    """A run config's ``mpa_gym.supervisor`` (its keys; module docstring)."""
+
+    fallback: str = "pid"  # the baseline that takes over
+    error_mm: float = 15.0  # [mm] running RMS of X̂ − X above which it takes over
+    error_window_s: float = 0.5  # [s] time constant of that running mean
+    aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
+    aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
+    aperiodic_clip_mm: float | None = None  # [mm] e_t − e_{t−T} clipped to ± this (None: not)
+    # [mm] running RMS (over aperiodic_window_s, from the third period on) of e itself, each
+    # sample clipped to ±persistent_clip_mm, above which it takes over (None: not watched)
+    persistent_mm: float | None = None
+    persistent_clip_mm: float | None = None  # [mm] (None: not clipped)
+    # once the fallback trips too: "ff", the feedforward alone; "afc", with adaptive
+    # feedforward cancellation (mpa_gym.agents.controllers.baselines.AdaptiveFeedforward)
+    last_resort: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.fallback not in REF_FALLBACKS:
+            raise ValueError(f"supervisor.fallback={self.fallback!r}: "
+                             f"allowed {list(REF_FALLBACKS)}")
+        if self.last_resort is not None and self.last_resort not in REF_LAST_RESORTS:
+            raise ValueError(f"supervisor.last_resort={self.last_resort!r}: allowed null or "
+                             f"{list(REF_LAST_RESORTS)}")
+        for key, hi, unit in (("error_mm", 100.0, "mm"), ("error_window_s", 30.0, "s"),
+                              ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
+            check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
+                        unit=unit)
+        if self.aperiodic_clip_mm is not None:  # below the level, the monitor could never trip
+            check_range("supervisor.aperiodic_clip_mm", self.aperiodic_clip_mm,
+                        self.aperiodic_mm, 100.0, low_open=True, unit="mm")
+        if self.persistent_mm is not None:
+            check_range("supervisor.persistent_mm", self.persistent_mm, 0.0, 100.0,
+                        low_open=True, unit="mm")
+        if self.persistent_clip_mm is not None:
+            if self.persistent_mm is None:
+                raise ValueError(f"supervisor.persistent_clip_mm={self.persistent_clip_mm!r} "
+                                 "needs supervisor.persistent_mm")
+            check_range("supervisor.persistent_clip_mm", self.persistent_clip_mm,
+                        self.persistent_mm, 100.0, low_open=True, unit="mm")
+
+    @classmethod
+    def from_config(cls, value: Any) -> RefSupervisorSpec:
+        """The spec of a config's ``supervisor`` mapping (unknown keys refused by name)."""
+        if isinstance(value, cls):
+            return value
+        keys = [f.name for f in dataclasses.fields(cls)]
+        if not isinstance(value, dict):
+            raise ValueError(f"supervisor={value!r} must be a mapping with keys {keys}")
+        unknown = sorted(set(value) - set(keys), key=str)
+        if unknown:
+            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are {keys}")
+        return cls(**value)
+
+    def describe(self) -> str:
+        out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
+               f"exceeds {self.error_mm:g} mm or, after {REF_ARM_PERIODS} periods, the RMS of its "
+               f"change over one period (over {self.aperiodic_window_s:g} s"
+               + (f", each sample clipped to ±{self.aperiodic_clip_mm:g} mm"
+                  if self.aperiodic_clip_mm is not None else "")
+               + f") exceeds {self.aperiodic_mm:g} mm")
+        if self.persistent_mm is not None:
+            out += (f" or, after {REF_ARM_PERIODS} periods, the error's own RMS over "
+                    f"{self.aperiodic_window_s:g} s"
+                    + (f" (each sample clipped to ±{self.persistent_clip_mm:g} mm)"
+                       if self.persistent_clip_mm is not None else "")
+                    + f" exceeds {self.persistent_mm:g} mm")
+        if self.last_resort:
+            out += (f"; {REF_LAST_RESORTS[self.last_resort]} once {self.fallback}'s loop, given "
+                    f"{REF_GRACE_PERIODS} period(s) to settle, passes {self.error_mm:g} mm too")
+        return out
+
+
+class RefSupervised:
+    """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
+    (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
+    With ``spec.last_resort``, the error monitor restarts when the fallback takes over and, if
+    the fallback's loop diverges too (after ``REF_GRACE_PERIODS`` to settle), ``last`` (the
+    controller ``spec.last_resort`` names) drives the rest of the episode from its rest state.
+
+    State: (policy's, fallback's, monitor, last resort's) with the monitor an (n, 6 + 3N) array
+    per row: the ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the
+    stage, the steps taken, the step the stage began, running mean of the clipped e²), then ring
+    buffers of the last N = T / dt errors and of the policy's last N actions (extensor's, then
+    flexor's)."""
+
+    def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
+                 spec: RefSupervisorSpec = RefSupervisorSpec(), last: Policy | None = None) -> None:
+        if spec.last_resort is not None and (
+                last is None or type(last).__name__ != BASELINES[spec.last_resort]):
+            raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its controller "
+                             f"{BASELINES[spec.last_resort]}, got {type(last).__name__} "
+                             "(mpa_gym.agents.learned.policies.supervise builds it)")
+        self.policy, self.fallback, self.last, self.spec = policy, fallback, last, spec
+        self.n_period = max(1, round(period_s / dt))
+        self.a_err = dt / (spec.error_window_s + dt)
+        self.a_ap = dt / (spec.aperiodic_window_s + dt)
+        self.clip = np.inf if spec.aperiodic_clip_mm is None else spec.aperiodic_clip_mm * 1e-3
+        self.persistent = np.inf if spec.persistent_mm is None else spec.persistent_mm * 1e-3
+        self.per_clip = (np.inf if spec.persistent_clip_mm is None
+                         else spec.persistent_clip_mm * 1e-3)
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = True
+                ) -> tuple[np.ndarray, Any]:
+        obs = np.asarray(observation, dtype=np.float64)
+        single = obs.ndim == 1
+        rows = obs.reshape(1, -1) if single else obs
+        n, N = rows.shape[0], self.n_period
+        inner, fb, mon, lr = (None, None, None, None) if state is None else state
+        mon = np.zeros((n, REF_M_RING + 3 * N)) if mon is None else np.array(mon, dtype=float)
+        if episode_start is not None:
+            mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
+        stage_before = mon[:, REF_M_STAGE].copy()
+        e = rows[:, OXR] - rows[:, OX]
+        k = mon[:, REF_M_STEP].astype(np.int64)
+        slot = REF_M_RING + k % N
+        past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
+        mon[:, REF_M_ERR] += self.a_err * (e**2 - mon[:, REF_M_ERR])
+        armed = k - mon[:, REF_M_SINCE] >= REF_ARM_PERIODS * N  # two periods into the stage
+        change = np.clip(e - past, -self.clip, self.clip)
+        mon[:, REF_M_AP] += np.where(armed, self.a_ap * (change**2 - mon[:, REF_M_AP]), 0.0)
+        held_e = np.clip(e, -self.per_clip, self.per_clip)
+        mon[:, REF_M_PER] += np.where(armed, self.a_ap * (held_e**2 - mon[:, REF_M_PER]), 0.0)
+        mon[np.arange(n), slot] = e
+        # the fallback's loop is judged on divergence alone: after a hand-over it settles from
+        # the policy's oscillation, slowly where it is near its own margin (module docstring)
+        grace = (stage_before > 0.0) & (k - mon[:, REF_M_SINCE] < REF_GRACE_PERIODS * N)
+        trip = (((np.sqrt(mon[:, REF_M_ERR]) > self.spec.error_mm * 1e-3) & ~grace)
+                | (((np.sqrt(mon[:, REF_M_AP]) > self.spec.aperiodic_mm * 1e-3)
+                    | (np.sqrt(mon[:, REF_M_PER]) > self.persistent))
+                   & (stage_before == 0.0)))
+        last = REF_LAST_RESORT if self.spec.last_resort else REF_FALLBACK
+        mon[:, REF_M_STAGE] = np.where(trip, np.minimum(stage_before + 1.0, last), stage_before)
+        if self.spec.last_resort:  # each stage is judged on its own loop: the monitor restarts
+            moved = (mon[:, REF_M_STAGE] > stage_before) & (mon[:, REF_M_STAGE] < last)
+            mon[moved, REF_M_ERR] = mon[moved, REF_M_AP] = mon[moved, REF_M_PER] = 0.0
+            mon[moved, REF_M_SINCE] = k[moved] + 1
+        driving = mon[:, REF_M_STAGE] > 0.0
+        a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
+        a2 = np.atleast_2d(a)
+        mon[np.arange(n), slot + N] = a2[:, 0]
+        mon[np.arange(n), slot + 2 * N] = a2[:, 1]
+        mon[:, REF_M_STEP] += 1
+        if not driving.any():  # the fallback runs only once it drives
+            return a, (inner, None, mon, None)
+        new = driving & ~(stage_before > 0.0) if fb is not None else driving
+        take_over = getattr(self.fallback, "take_over", None)
+        if take_over is None:  # no bumpless transfer: from zero state
+            b, fb = self.fallback.predict(observation, fb, new[0] if single else new,
+                                          deterministic)
+        else:
+            fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
+            b, fb = self.fallback.predict(observation, fb, None, deterministic)
+        out = np.where(driving[:, None], np.atleast_2d(b), a2)
+        resort = mon[:, REF_M_STAGE] >= REF_LAST_RESORT
+        if resort.any():  # the last resort, from its rest state on the rows it takes over
+            fresh = resort & (stage_before < REF_LAST_RESORT)
+            c, lr = self.last.predict(observation, lr, fresh[0] if single else fresh,
+                                      deterministic)
+            out[resort] = np.atleast_2d(c)[resort]
+        out = out.astype(np.float32)
+        return (out[0] if single else out), (inner, fb, mon, lr)
+
+    def held(self, mon: np.ndarray) -> np.ndarray:
+        """(n, 2) per row, the mean of the policy's actions over the last reference period (or
+        over the steps so far, within the first): the command the fallback takes over."""
+        N, r = self.n_period, REF_M_RING
+        filled = np.minimum(mon[:, REF_M_STEP], N)[:, None]
+        return np.stack([mon[:, r + N:r + 2 * N].sum(axis=1),
+                         mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
+
+    @staticmethod
+    def stage(state: Any) -> np.ndarray | None:
+        """Per row, who drives: ``REF_POLICY``, ``REF_FALLBACK`` or ``REF_LAST_RESORT`` (None
+        before the first step)."""
+        return None if state is None else np.asarray(state[2])[:, REF_M_STAGE].astype(np.int8)

@@ -1,103 +1,59 @@
-"""Run-time assurance for a learned residual: a fallback controller takes over when it fails.
+"""Run-time assurance for a learned residual: a declared cascade of controllers, each handing
+the loop to the next when one of its monitors trips.
 
 The Simplex architecture (Sha, "Using simplicity to control complexity", IEEE Software 2001;
 run-time assurance in the safe-RL literature): a high-performance controller that cannot be
 verified runs beside a simple one that can, and a monitor hands control to the simple one when
-the loop leaves the region where the first is known to behave. Here the learned residual is the
-high-performance controller and a tuned baseline (``pid``: stable on every cell of the
-robustness grids up to 30 ms of regulator dead time) the fallback. The monitor watches the
-tracking error e = X̂ − X for the three ways a destabilised loop shows itself:
+the loop leaves the region where the first is known to behave. The rule is declared
+(``SupervisorSpec``): a cascade of stages (``Stage``), the learned policy, a fallback baseline
+(``pid`` or ``mbfb``) and optionally a last resort (``ff``, the feedforward alone, or ``afc``,
+the feedforward with adaptive feedforward cancellation); each stage names the monitors that
+judge its loop and the reference periods its loop has to settle first. When one of them trips,
+the next stage drives the rest of the episode (a latch: a controller that destabilised this
+plant once does it again). The last stage drives to the end.
 
-- a divergence: the running RMS of e over ``error_window_s``,
-  z_t = z_{t−1} + α (e_t² − z_{t−1}), α = dt / (window + dt), above ``error_mm``;
-- a persistent error (with ``persistent_mm``): the running RMS of e itself over
-  ``aperiodic_window_s``, each sample clipped to ±``persistent_clip_mm``, from the third
-  period on, for the residual alone. Under 20 ms of dead time and a 30 ms lag a policy can
-  settle onto a periodic error of several mm. Its change over a period is zero, so the
-  limit-cycle monitor cannot see it, and it stays under the divergence level. The clip keeps a
-  kick's centimetres from counting for more than c² over their few tenths of a second.
-- a limit cycle: the running RMS (over ``aperiodic_window_s``) of e_t − e_{t−T}, the error's
-  change over one reference period T, above ``aperiodic_mm``, from the third period on. A
-  stable loop settles onto a motion with the reference's period (a sag under a load, a phase
-  lag), which cancels in the difference; an oscillation at another frequency does not (for an
-  aperiodic part r of RMS ρ, e_t − e_{t−T} has RMS ≈ √2 ρ). This is the robustness sweep's
-  "unstable" criterion (``mpa_gym.agents.evaluation.robustness``) made causal. The first two periods are left out
-  because the difference would compare the settled loop with its start-up transient. With
-  ``aperiodic_clip_mm`` c each sample of e_t − e_{t−T} is clipped to ±c before it is squared
-  (winsorised): a kick's transient, centimetres for a few tenths of a second (and seen again
-  one period later), then adds at most c² for its length to a mean over seconds, while an
-  oscillation whose change stays within ±c is measured exactly as without the clip, and a
-  larger one still reaches c² ≥ the level². Without it, the one statistic could not tell a
-  kick the policy recovers from in 0.4 s from a limit cycle, and a 30 N kick on a heavy leg
-  handed the loop to the fallback for good.
+Each monitor (``Monitor``) is a running mean of a signal s of the tracking error e = X̂ − X,
+z_t = z_{t−1} + α (s_t² − z_{t−1}), α = dt / (window_s + dt), each sample clipped to
+±``clip_mm`` (winsorised), left at zero for ``arm_periods`` reference periods after its stage
+began; it trips when √z passes ``level_mm``.
 
-Once either level is crossed, the fallback drives the rest of the episode (the latch never hands
-back: a residual that destabilised this plant once does it again). A feedback fallback can fail
-too: beyond ~30 ms of dead time the tuned pid limit-cycles on its own. With a ``last_resort``
-the error monitor restarts from zero when the fallback takes over and, if the fallback's loop
-diverges as well after one period to settle (pid's own limit cycle at 40 ms of dead time on the
-unloaded leg reaches 22 mm RMS), the last resort drives the rest of the episode, from its rest
-state: ``ff``, the feedforward alone (a zero residual: Eq. 16 open loop, which has no feedback
-for a delay to destabilise), or ``afc``, the feedforward with adaptive feedforward cancellation
-(``mpa_gym.agents.controllers.baselines.AdaptiveFeedforward``). That controller starts as the feedforward and learns
-the periodic command it lacks, acting at the reference's frequency alone, where 40 ms of delay
-is a phase of 5°. Handed to ``ff``, the unloaded leg's loop at 40 ms ended 0.001-0.003 mm above
-the feedforward alone on four seeds of five. The excursion pid's divergence leaves decays by
-~5.5× a period, open loop, and the difference was still in the metric's window. Handed to
-``afc``, the same loops end at 0.48-0.77 mm, against 2.07 mm for the feedforward alone.
+- ``Divergence``, s = e: a loop leaving the tracking region, seen within its short window.
+- ``LimitCycle``, s = e_t − e_{t−T}, T the reference period: an oscillation that does not
+  repeat with the reference. A stable loop settles onto a motion of period T (a sag under a
+  load, a phase lag), which cancels in the difference; an aperiodic part of RMS ρ gives
+  ≈ √2 ρ. It is the robustness sweep's "unstable" criterion (``mpa_gym.agents.evaluation.robustness``) made
+  causal, armed after two periods so that it does not compare the settled loop with its
+  start-up transient.
+- ``Persistent``, s = e: a periodic error of several mm, which the limit cycle cannot see (its
+  change over a period is zero) and which stays under the divergence level.
 
-The fallback's loop is judged on divergence only: after a hand-over it settles from the policy's
-oscillation, and where it is near its own stability margin (30 ms on the unloaded leg, 40 ms
-with 0.5 kg) that transient crossed the 2 mm limit-cycle level of the default config and handed
-a loop pid holds (0.47 and 0.73 mm) to the feedforward (1.8 and 10.6 mm); so, with no grace
-period, did the divergence level. The period of grace was set on the default config's policy in
-the sweep's 40 ms row (beyond its training range): with half a period the unloaded leg's loop
-ended 4e-6 mm above the feedforward alone (the last resort was ``ff`` then; the no-harm audit's
-bound is strict); with two periods it left its bounds under pid before the feedforward took
-over. The grace was set with ``ff`` as the last resort and kept for ``afc``: the loops it hands
-over are the same (no other cell of either grid reaches the last resort).
+The clip bounds what a kick can add: its transient (centimetres for a few tenths of a second)
+adds at most clip² for its length to a mean over seconds, while a signal within ±clip is
+measured exactly and a larger one still reaches clip² > level².
 
-The fallback is not run until the first trip. It takes over bumplessly (Åström & Hägglund,
-"Advanced PID control", 2006, § 3.5): a fallback with a ``take_over(observation, held, state,
-rows)`` method (both baselines) starts its integrator from the command the policy held, so the
-load the policy was carrying stays carried; one without it starts from zero state. The command
-held is the mean of the policy's actions over the last reference period (its DC part: a periodic
-loop's corrections at the reference frequency and its harmonics cancel in it, and so, to first
-order, does the oscillation that tripped the monitor), not the last action, which would carry
-the oscillation's instantaneous value into the integrator. Without it, pid restarted from zero
-on a leg carrying 1.6 kg took 5.5 s to recover (|e| < 1 mm) after a kick, against 2.2 s for pid
-alone.
-
-Calibration of the default config's levels (``configs/ppo_residual.yaml``; ``mpa-gym
-evaluate`` of five seeds of its policy beside the baselines; the sweep's cells, held-out ones
-included). The policy's failures under regulator dead time: a chatter whose change over a
-period has 0.4-0.5 mm RMS under 10 ms (pid holds 0.29-0.46 mm there), limit cycles of several
-mm under 20-40 ms, a periodic error of 2.8 mm on one seed under 20 ms with +0.5 kg, and loops
-that leave the leg's bounds, which pass 15 mm within their first second. Its healthy loops: a
-change of 0.05-0.16 mm RMS on the kicked levels once the kick has passed, an error of 0.9 mm
-RMS or less (the medium level). Hence 0.4 mm for the change, its samples clipped to ±0.5 mm,
-2 mm for the error, clipped to ±3 mm, and 15 mm for a divergence. With these, no named or
-held-out scenario trips (but the impulse on one seed of five, where pid then tracks to
-0.001 mm), the 30 N × 50 ms kick on the 1.6 kg leg stays the policy's on every seed (it
-recovers in 0.46-0.84 s, pid alone in 2.2 s), and the kicked easy or medium level goes to pid
-on one or two seeds of five. A higher level lets the chatter run on (at 1 mm clipped at 1.5 mm:
-10 no-harm breaches of 285 against 4, with ``ff`` as the last resort; the 4 were the 40 ms
-cell, and none remain with ``afc``); without the clip, a level this low hands every kick
-over. A trip on a healthy loop costs tracking quality (the fallback's instead of the policy's),
-never stability where the fallback is stable.
+On entering a stage its monitors start again from zero. The fallback's loop settles from the
+policy's oscillation, slowly where it is near its own stability margin: its grace periods keep
+that transient from handing a loop it holds to the last resort. The fallback takes over
+bumplessly (Åström & Hägglund, "Advanced PID control", 2006, § 3.5) when it has a
+``take_over(observation, held, state, rows)`` method (both baselines): its integrator starts
+from the command the policy held, the mean of the policy's actions over the last reference
+period (its DC part, in which the periodic corrections and, to first order, the oscillation
+that tripped cancel), so the load the policy carried stays carried. A stage without it, and
+every stage after the fallback, starts from its rest state.
 
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
-rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage (the policy,
-the fallback or the last resort), and the reports give the times the fallback and the last
-resort took over, so a figure never hides which controller earned it.
+rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage and
+``take_over_times`` the times the fallback and the last resort took over, so a figure never
+hides which controller earned it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar, NamedTuple
 
+import mpa_gym.agents.controllers.baselines as baselines
 import numpy as np
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy
 
@@ -105,120 +61,389 @@ from mpa_gym.model.params import check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
-FALLBACKS = ("pid", "mbfb")
+POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages' places in the cascade: who drives
+FALLBACKS = ("pid", "mbfb")  # the controllers a stage may name at each place
 # the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
                 "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
-ARM_PERIODS = 2  # periods left out of the limit-cycle monitor (module docstring)
+ARM_PERIODS = 2  # periods the limit-cycle and persistent monitors leave out of a stage
 GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
-POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages: who drives
-# the monitor's columns per row (``Supervised``): the two running means, the stage, the steps
-# taken, the step the stage began; then the ring buffers
-M_ERR, M_AP, M_STAGE, M_STEP, M_SINCE, M_PER = range(6)
-M_RING = 6
+LEVEL_MAX_MM, WINDOW_MAX_S, PERIODS_MAX = 100.0, 30.0, 100  # the monitors' allowed ranges
+
+
+def _check_monitor(level_mm: Any, window_s: Any, clip_mm: Any, arm_periods: Any,
+                   keys: tuple[str, str, str, str]) -> None:
+    """A monitor's values against their ranges; ``keys`` name them in the errors."""
+    check_range(keys[0], level_mm, 0.0, LEVEL_MAX_MM, low_open=True, unit="mm")
+    check_range(keys[1], window_s, 0.0, WINDOW_MAX_S, low_open=True, unit="s")
+    if clip_mm is not None:
+        check_range(keys[2], clip_mm, level_mm, LEVEL_MAX_MM, low_open=True, unit="mm",
+                    note=f"above {keys[0]}: clipped at or below it, it could never trip")
+    _check_periods(keys[3], arm_periods)
+
+
+def _check_periods(key: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise ValueError(f"{key}={value!r} must be a whole number of reference periods in "
+                         f"[0, {PERIODS_MAX}]")
+    check_range(key, value, 0, PERIODS_MAX)
+
+
+@dataclass(frozen=True)
+class Monitor:
+    """A running RMS of one signal of the tracking error and the level at which it trips
+    (module docstring). The subclasses say which signal; their defaults are the default
+    config's."""
+
+    name: ClassVar[str]  # its key in a config's ``supervisor.monitors``
+    what: ClassVar[str]  # what ``describe`` calls its statistic
+
+    level_mm: float  # [mm] it trips once the running RMS passes this
+    window_s: float  # [s] time constant of the running mean
+    clip_mm: float | None  # [mm] each sample clipped to ± this before it is squared (None: not)
+    arm_periods: int  # reference periods after its stage began before it accumulates
+
+    def __post_init__(self) -> None:
+        _check_monitor(self.level_mm, self.window_s, self.clip_mm, self.arm_periods,
+                       tuple(f"supervisor.monitors.{self.name}.{f}" for f in
+                             ("level_mm", "window_s", "clip_mm", "arm_periods")))
+
+    def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
+        """s_t per row from e_t and e_{t−T} [m]."""
+        raise NotImplementedError
+
+    def update(self, z: np.ndarray, e: np.ndarray, past: np.ndarray, armed: np.ndarray,
+               dt: float) -> np.ndarray:
+        """The running mean of s² [m²] after this step, per row (left where not ``armed``)."""
+        clip = np.inf if self.clip_mm is None else self.clip_mm * 1e-3
+        s = np.clip(self.signal(e, past), -clip, clip)
+        return z + np.where(armed, dt / (self.window_s + dt) * (s**2 - z), 0.0)
+
+    def tripped(self, z: np.ndarray) -> np.ndarray:
+        """Per row, whether the running RMS √z has passed the level."""
+        return np.sqrt(z) > self.level_mm * 1e-3
+
+    def describe(self) -> str:
+        return (f"{self.what} over {self.window_s:g} s"
+                + (f" (each sample clipped to ±{self.clip_mm:g} mm)"
+                   if self.clip_mm is not None else "")
+                + f" exceeds {self.level_mm:g} mm"
+                + (f" after the stage's first {self.arm_periods} periods"
+                   if self.arm_periods else ""))
+
+
+@dataclass(frozen=True)
+class Divergence(Monitor):
+    """s = e: a divergence, the loop leaving the tracking region."""
+
+    name: ClassVar[str] = "divergence"
+    what: ClassVar[str] = "the error's RMS"
+    level_mm: float = 15.0
+    window_s: float = 0.5
+    clip_mm: float | None = None
+    arm_periods: int = 0
+
+    def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
+        return e
+
+
+@dataclass(frozen=True)
+class LimitCycle(Monitor):
+    """s = e_t − e_{t−T}: an oscillation that does not repeat with the reference."""
+
+    name: ClassVar[str] = "limit_cycle"
+    what: ClassVar[str] = "the RMS of the error's one-period change"
+    level_mm: float = 0.4
+    window_s: float = 3.0
+    clip_mm: float | None = 0.5
+    arm_periods: int = ARM_PERIODS
+
+    def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
+        return e - past
+
+
+@dataclass(frozen=True)
+class Persistent(Monitor):
+    """s = e over seconds: a persistent (periodic) error of several mm."""
+
+    name: ClassVar[str] = "persistent"
+    what: ClassVar[str] = "the error's own RMS"
+    level_mm: float = 2.0
+    window_s: float = 3.0
+    clip_mm: float | None = 3.0
+    arm_periods: int = ARM_PERIODS
+
+    def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
+        return e
+
+
+MONITORS: dict[str, type[Monitor]] = {m.name: m for m in (Divergence, LimitCycle, Persistent)}
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One place in the cascade: who drives, which monitors judge its loop (the first to trip
+    hands the row to the next stage) and how long its loop has to settle before they do."""
+
+    controller: str  # "policy", or the mpa_gym.agents.controllers.baselines name of a fallback / last resort
+    monitors: tuple[str, ...] = ()  # names of the spec's monitors; none: it drives to the end
+    grace_periods: int = 0  # reference periods from its start before its loop is judged
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "monitors", tuple(self.monitors))
+
+    def check(self, where: str, known: tuple[str, ...]) -> None:
+        bad = [m for m in self.monitors if m not in known]
+        if bad or len(set(self.monitors)) != len(self.monitors):
+            raise ValueError(f"{where}.monitors={list(self.monitors)!r}: allowed distinct names "
+                             f"of supervisor.monitors {list(known)}")
+        _check_periods(f"{where}.grace_periods", self.grace_periods)
+        if self.grace_periods and not self.monitors:
+            raise ValueError(f"{where}.grace_periods={self.grace_periods} needs monitors to "
+                             "delay (a stage without monitors is never judged)")
+
+
+DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
+DEFAULT_STAGES = (Stage("policy", ("divergence", "limit_cycle", "persistent")),
+                  Stage("pid", ("divergence",), GRACE_PERIODS),
+                  Stage("afc"))
+# The flat section that run folders written before the cascade was declared hold: its keys and
+# what an omitted one meant then (it is how those runs were evaluated; never change it).
+FLAT_KEYS = {"fallback": "pid", "error_mm": 15.0, "error_window_s": 0.5, "aperiodic_mm": 3.0,
+             "aperiodic_window_s": 3.0, "aperiodic_clip_mm": None, "persistent_mm": None,
+             "persistent_clip_mm": None, "last_resort": None}
 
 
 @dataclass(frozen=True)
 class SupervisorSpec:
-    """A run config's ``mpa_gym.supervisor`` (its keys; module docstring)."""
+    """A run config's ``mpa_gym.supervisor``: the monitors and the cascade of stages (module
+    docstring). The defaults are the default config's (``configs/ppo_residual.yaml``)."""
 
-    fallback: str = "pid"  # the baseline that takes over
-    error_mm: float = 15.0  # [mm] running RMS of X̂ − X above which it takes over
-    error_window_s: float = 0.5  # [s] time constant of that running mean
-    aperiodic_mm: float = 3.0  # [mm] running RMS of e_t − e_{t−T} above which it takes over
-    aperiodic_window_s: float = 3.0  # [s] time constant of that running mean
-    aperiodic_clip_mm: float | None = None  # [mm] e_t − e_{t−T} clipped to ± this (None: not)
-    # [mm] running RMS (over aperiodic_window_s, from the third period on) of e itself, each
-    # sample clipped to ±persistent_clip_mm, above which it takes over (None: not watched)
-    persistent_mm: float | None = None
-    persistent_clip_mm: float | None = None  # [mm] (None: not clipped)
-    # once the fallback trips too: "ff", the feedforward alone; "afc", with adaptive
-    # feedforward cancellation (mpa_gym.agents.controllers.baselines.AdaptiveFeedforward)
-    last_resort: str | None = None
+    monitors: tuple[Monitor, ...] = DEFAULT_MONITORS  # one of each kind at most
+    stages: tuple[Stage, ...] = DEFAULT_STAGES  # the policy, a fallback, a last resort
 
     def __post_init__(self) -> None:
-        if self.fallback not in FALLBACKS:
-            raise ValueError(f"supervisor.fallback={self.fallback!r}: allowed {list(FALLBACKS)}")
-        if self.last_resort is not None and self.last_resort not in LAST_RESORTS:
-            raise ValueError(f"supervisor.last_resort={self.last_resort!r}: allowed null or "
-                             f"{list(LAST_RESORTS)}")
-        for key, hi, unit in (("error_mm", 100.0, "mm"), ("error_window_s", 30.0, "s"),
-                              ("aperiodic_mm", 100.0, "mm"), ("aperiodic_window_s", 30.0, "s")):
-            check_range(f"supervisor.{key}", getattr(self, key), 0.0, hi, low_open=True,
-                        unit=unit)
-        if self.aperiodic_clip_mm is not None:  # below the level, the monitor could never trip
-            check_range("supervisor.aperiodic_clip_mm", self.aperiodic_clip_mm,
-                        self.aperiodic_mm, 100.0, low_open=True, unit="mm")
-        if self.persistent_mm is not None:
-            check_range("supervisor.persistent_mm", self.persistent_mm, 0.0, 100.0,
-                        low_open=True, unit="mm")
-        if self.persistent_clip_mm is not None:
-            if self.persistent_mm is None:
-                raise ValueError(f"supervisor.persistent_clip_mm={self.persistent_clip_mm!r} "
-                                 "needs supervisor.persistent_mm")
-            check_range("supervisor.persistent_clip_mm", self.persistent_clip_mm,
-                        self.persistent_mm, 100.0, low_open=True, unit="mm")
+        object.__setattr__(self, "monitors", tuple(self.monitors))
+        object.__setattr__(self, "stages", tuple(self.stages))
+        names = tuple(m.name for m in self.monitors)
+        for m in self.monitors:
+            if type(m) is not MONITORS.get(m.name):
+                raise ValueError(f"supervisor.monitors: {m!r} is not one of {list(MONITORS)}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"supervisor.monitors={list(names)}: each kind at most once")
+        allowed = ("policy", FALLBACKS, tuple(LAST_RESORTS))
+        if not 2 <= len(self.stages) <= len(allowed):
+            raise ValueError(f"supervisor.stages has {len(self.stages)} stage(s): allowed 2 "
+                             "(the policy, a fallback) or 3 (and a last resort)")
+        for i, (stage, ok) in enumerate(zip(self.stages, allowed, strict=False)):
+            where = f"supervisor.stages[{i}]"
+            if stage.controller not in (ok if isinstance(ok, tuple) else (ok,)):
+                raise ValueError(f"{where}.controller={stage.controller!r}: allowed "
+                                 f"{list(ok) if isinstance(ok, tuple) else [ok]}")
+            stage.check(where, names)
+            last = i == len(self.stages) - 1
+            if last == bool(stage.monitors):
+                raise ValueError(
+                    f"{where}.monitors={list(stage.monitors)!r}: the last stage drives to the "
+                    "end and has none" if last else
+                    f"{where}.monitors=[]: every stage but the last needs a monitor (the next "
+                    "stage could never drive)")
+
+    @property
+    def fallback(self) -> str:
+        """The baseline that takes over from the policy."""
+        return self.stages[FALLBACK].controller
+
+    @property
+    def last_resort(self) -> str | None:
+        """The baseline that takes over from the fallback (None: the fallback drives on)."""
+        return self.stages[LAST_RESORT].controller if len(self.stages) > LAST_RESORT else None
+
+    def monitor(self, name: str) -> Monitor:
+        return next(m for m in self.monitors if m.name == name)
 
     @classmethod
     def from_config(cls, value: Any) -> SupervisorSpec:
-        """The spec of a config's ``supervisor`` mapping (unknown keys refused by name)."""
+        """The spec of a config's ``supervisor`` mapping: the declared form (``monitors``,
+        ``stages``; each omitted part the default) or, with neither key, the flat form of run
+        folders written before (``from_flat``). Unknown keys are refused by name."""
         if isinstance(value, cls):
             return value
-        keys = [f.name for f in dataclasses.fields(cls)]
+        declared = ["monitors", "stages"]
         if not isinstance(value, dict):
-            raise ValueError(f"supervisor={value!r} must be a mapping with keys {keys}")
-        unknown = sorted(set(value) - set(keys), key=str)
+            raise ValueError(f"supervisor={value!r} must be a mapping with keys {declared} "
+                             f"(or the flat form's {list(FLAT_KEYS)})")
+        if not set(value) & set(declared):
+            return cls.from_flat(value)
+        unknown = sorted(set(value) - set(declared), key=str)
         if unknown:
-            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are {keys}")
-        return cls(**value)
+            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are "
+                             f"{declared} (the flat form's keys do not mix with them)")
+        stages = _stages(value.get("stages"))
+        used = {m for s in stages for m in s.monitors}
+        monitors = _monitors(value.get("monitors"))
+        # the monitors the stages use (if they name none known, all: the error lists them)
+        return cls(tuple(m for m in monitors if m.name in used) or monitors, stages)
+
+    @classmethod
+    def from_flat(cls, value: dict[str, Any]) -> SupervisorSpec:
+        """The cascade a flat section (``FLAT_KEYS``) meant: the policy judged on divergence
+        (error_*), limit cycle (aperiodic_*) and, with persistent_mm, persistent error (over
+        aperiodic_window_s); then the fallback, judged on divergence alone after
+        ``GRACE_PERIODS`` when a last_resort follows it."""
+        unknown = sorted(set(value) - set(FLAT_KEYS), key=str)
+        if unknown:
+            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are "
+                             f"['monitors', 'stages'] or the flat form's {list(FLAT_KEYS)}")
+        f = {**FLAT_KEYS, **value}
+        if f["fallback"] not in FALLBACKS:
+            raise ValueError(f"supervisor.fallback={f['fallback']!r}: allowed {list(FALLBACKS)}")
+        if f["last_resort"] is not None and f["last_resort"] not in LAST_RESORTS:
+            raise ValueError(f"supervisor.last_resort={f['last_resort']!r}: allowed null or "
+                             f"{list(LAST_RESORTS)}")
+        if f["persistent_clip_mm"] is not None and f["persistent_mm"] is None:
+            raise ValueError(f"supervisor.persistent_clip_mm={f['persistent_clip_mm']!r} "
+                             "needs supervisor.persistent_mm")
+        # monitor: its level, window and clip keys (the persistent one has no window of its
+        # own), and the periods it was armed after
+        flat = {Divergence: ("error_mm", "error_window_s", None, 0),
+                LimitCycle: ("aperiodic_mm", "aperiodic_window_s", "aperiodic_clip_mm",
+                             ARM_PERIODS),
+                Persistent: ("persistent_mm", "aperiodic_window_s", "persistent_clip_mm",
+                             ARM_PERIODS)}
+        monitors = []
+        for kind, (level, window, clip, arm) in flat.items():
+            if f[level] is None:  # persistent_mm: not watched
+                continue
+            c = None if clip is None else f[clip]
+            _check_monitor(f[level], f[window], c, arm,
+                           (f"supervisor.{level}", f"supervisor.{window}", f"supervisor.{clip}",
+                            "arm_periods"))
+            monitors.append(kind(float(f[level]), float(f[window]),
+                                 None if c is None else float(c), arm))
+        if f["last_resort"] is None:
+            stages = (Stage("policy", tuple(m.name for m in monitors)), Stage(f["fallback"]))
+        else:
+            stages = (Stage("policy", tuple(m.name for m in monitors)),
+                      Stage(f["fallback"], ("divergence",), GRACE_PERIODS),
+                      Stage(f["last_resort"]))
+        return cls(tuple(monitors), stages)
 
     def describe(self) -> str:
-        out = (f"{self.fallback} takes over once the error's RMS over {self.error_window_s:g} s "
-               f"exceeds {self.error_mm:g} mm or, after {ARM_PERIODS} periods, the RMS of its "
-               f"change over one period (over {self.aperiodic_window_s:g} s"
-               + (f", each sample clipped to ±{self.aperiodic_clip_mm:g} mm"
-                  if self.aperiodic_clip_mm is not None else "")
-               + f") exceeds {self.aperiodic_mm:g} mm")
-        if self.persistent_mm is not None:
-            out += (f" or, after {ARM_PERIODS} periods, the error's own RMS over "
-                    f"{self.aperiodic_window_s:g} s"
-                    + (f" (each sample clipped to ±{self.persistent_clip_mm:g} mm)"
-                       if self.persistent_clip_mm is not None else "")
-                    + f" exceeds {self.persistent_mm:g} mm")
-        if self.last_resort:
-            out += (f"; {LAST_RESORTS[self.last_resort]} once {self.fallback}'s loop, given "
-                    f"{GRACE_PERIODS} period(s) to settle, passes {self.error_mm:g} mm too")
+        out = ""
+        for i, stage in enumerate(self.stages[:-1]):
+            nxt = self.stages[i + 1].controller
+            who = LAST_RESORTS.get(nxt, nxt) if i + 1 >= LAST_RESORT else nxt
+            judged = " or ".join(self.monitor(m).describe() for m in stage.monitors)
+            settle = (f" (given {stage.grace_periods} period(s) to settle)"
+                      if stage.grace_periods else "")
+            out += (f"{who} takes over once {judged}" if i == 0 else
+                    f"; {who} takes over once, in {stage.controller}'s loop{settle}, {judged}")
         return out
 
 
-class Supervised:
-    """``policy`` until the monitor trips, then ``fallback`` for the rest of the episode
-    (module docstring); ``period_s`` is the reference's period T, ``dt`` the control period.
-    With ``spec.last_resort``, the error monitor restarts when the fallback takes over and, if
-    the fallback's loop diverges too (after ``GRACE_PERIODS`` to settle), ``last`` (the
-    controller ``spec.last_resort`` names) drives the rest of the episode from its rest state.
+def _monitors(value: Any) -> tuple[Monitor, ...]:
+    """A config's ``supervisor.monitors``: name → the fields that differ from that monitor's
+    defaults; every monitor not named keeps its defaults (the stages say which are used)."""
+    if value is None:
+        return DEFAULT_MONITORS
+    if not isinstance(value, dict):
+        raise ValueError(f"supervisor.monitors={value!r} must be a mapping of {list(MONITORS)} "
+                         "to their fields")
+    out = {m.name: m for m in DEFAULT_MONITORS}
+    for name, fields in value.items():
+        if name not in MONITORS:
+            raise ValueError(f"supervisor.monitors: unknown monitor {name!r}; allowed "
+                             f"{list(MONITORS)}")
+        keys = [f.name for f in dataclasses.fields(MONITORS[name])]
+        fields = {} if fields is None else fields
+        if not isinstance(fields, dict) or set(fields) - set(keys):
+            raise ValueError(f"supervisor.monitors.{name}={fields!r}: allowed keys are {keys}")
+        out[name] = MONITORS[name](**fields)
+    return tuple(out.values())
 
-    State: (policy's, fallback's, monitor, last resort's) with the monitor an (n, 6 + 3N) array
-    per row: the ``M_*`` columns (running mean of e², running mean of (e_t − e_{t−T})², the
-    stage, the steps taken, the step the stage began, running mean of the clipped e²), then ring
-    buffers of the last N = T / dt errors and of the policy's last N actions (extensor's, then
-    flexor's)."""
+
+def _stages(value: Any) -> tuple[Stage, ...]:
+    """A config's ``supervisor.stages``: a list of {controller, monitors, grace_periods}."""
+    if value is None:
+        return DEFAULT_STAGES
+    keys = [f.name for f in dataclasses.fields(Stage)]
+    if not isinstance(value, list):
+        raise ValueError(f"supervisor.stages={value!r} must be a list of mappings with keys "
+                         f"{keys}")
+    out = []
+    for i, stage in enumerate(value):
+        if not isinstance(stage, dict) or set(stage) - set(keys) or "controller" not in stage:
+            raise ValueError(f"supervisor.stages[{i}]={stage!r}: a mapping with a controller "
+                             f"and keys among {keys}")
+        monitors = stage.get("monitors") or []
+        if not isinstance(monitors, list):
+            raise ValueError(f"supervisor.stages[{i}].monitors={monitors!r} must be a list of "
+                             "monitor names")
+        out.append(Stage(stage["controller"], tuple(monitors), stage.get("grace_periods", 0)))
+    return tuple(out)
+
+
+@dataclass
+class MonitorState:
+    """Per row of a batch, the supervisor's episode state (arrays over n rows)."""
+
+    stage: np.ndarray  # (n,) int: the row's place in the cascade (``POLICY``, ...)
+    step: np.ndarray  # (n,) int: steps taken this episode
+    since: np.ndarray  # (n,) int: the step its stage began
+    mean_sq: dict[str, np.ndarray]  # monitor name → (n,) running mean of s² [m²]
+    errors: np.ndarray  # (n, N) e [m] over the last N = T / dt steps, at slot step % N
+    actions: np.ndarray  # (n, 2, N) the policy's last N actions (extensor, flexor), likewise
+
+    @classmethod
+    def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int) -> MonitorState:
+        return cls(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
+                   np.zeros(n, dtype=np.int64), {m.name: np.zeros(n) for m in monitors},
+                   np.zeros((n, n_period)), np.zeros((n, 2, n_period)))
+
+    def copy(self) -> MonitorState:
+        return MonitorState(self.stage.copy(), self.step.copy(), self.since.copy(),
+                            {k: v.copy() for k, v in self.mean_sq.items()},
+                            self.errors.copy(), self.actions.copy())
+
+    def restart(self, rows: np.ndarray) -> None:
+        """A new episode on ``rows``: everything from zero."""
+        for a in (self.stage, self.step, self.since, *self.mean_sq.values(), self.errors,
+                  self.actions):
+            a[rows] = 0
+
+
+class SupervisedState(NamedTuple):
+    """``Supervised``'s state: the policy's, each later stage's controller's (None until it
+    first drives a row) and the monitors'."""
+
+    policy: Any
+    stages: tuple[Any, ...]
+    monitor: MonitorState
+
+
+class Supervised:
+    """``policy`` under the cascade of ``spec`` (module docstring); ``fallback`` and ``last``
+    are the controllers of its later stages (``mpa_gym.agents.learned.policies.supervise`` builds them),
+    ``period_s`` the reference's period T, ``dt`` the control period. The last resort must be
+    the controller its stage names (it starts from that controller's rest state)."""
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,
                  spec: SupervisorSpec = SupervisorSpec(), last: Policy | None = None) -> None:
-        if spec.last_resort is not None and (
-                last is None or type(last).__name__ != BASELINES[spec.last_resort]):
-            raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its controller "
-                             f"{BASELINES[spec.last_resort]}, got {type(last).__name__} "
-                             "(mpa_gym.agents.learned.policies.supervise builds it)")
-        self.policy, self.fallback, self.last, self.spec = policy, fallback, last, spec
+        if spec.last_resort is not None:
+            cls = getattr(baselines, BASELINES[spec.last_resort])
+            if type(last) is not cls:
+                raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its "
+                                 f"controller {cls.__name__}, got {type(last).__name__} "
+                                 "(mpa_gym.agents.learned.policies.supervise builds it)")
+        self.policy, self.spec, self.dt = policy, spec, dt
+        self.controllers = (fallback, last)[:len(spec.stages) - 1]
         self.n_period = max(1, round(period_s / dt))
-        self.a_err = dt / (spec.error_window_s + dt)
-        self.a_ap = dt / (spec.aperiodic_window_s + dt)
-        self.clip = np.inf if spec.aperiodic_clip_mm is None else spec.aperiodic_clip_mm * 1e-3
-        self.persistent = np.inf if spec.persistent_mm is None else spec.persistent_mm * 1e-3
-        self.per_clip = (np.inf if spec.persistent_clip_mm is None
-                         else spec.persistent_clip_mm * 1e-3)
+        N = self.n_period
+        # per stage: which of spec.monitors judge it, and the steps of grace from its start
+        self.judges = np.array([[m.name in s.monitors for m in spec.monitors]
+                                for s in spec.stages], dtype=bool).reshape(len(spec.stages), -1)
+        self.grace_steps = np.array([s.grace_periods * N for s in spec.stages])
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -226,75 +451,66 @@ class Supervised:
         obs = np.asarray(observation, dtype=np.float64)
         single = obs.ndim == 1
         rows = obs.reshape(1, -1) if single else obs
-        n, N = rows.shape[0], self.n_period
-        inner, fb, mon, lr = (None, None, None, None) if state is None else state
-        mon = np.zeros((n, M_RING + 3 * N)) if mon is None else np.array(mon, dtype=float)
+        n, N, later = rows.shape[0], self.n_period, len(self.controllers)
+        if state is None:
+            state = SupervisedState(None, (None,) * later, None)
+        mon = (MonitorState.zeros(n, self.spec.monitors, N) if state.monitor is None
+               else state.monitor.copy())
         if episode_start is not None:
-            mon[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
-        stage_before = mon[:, M_STAGE].copy()
+            mon.restart(np.asarray(episode_start, dtype=bool).reshape(-1))
+        before, k, r = mon.stage.copy(), mon.step.copy(), np.arange(n)
         e = rows[:, OXR] - rows[:, OX]
-        k = mon[:, M_STEP].astype(np.int64)
-        slot = M_RING + k % N
-        past = mon[np.arange(n), slot]  # e one period ago (once k >= N)
-        mon[:, M_ERR] += self.a_err * (e**2 - mon[:, M_ERR])
-        armed = k - mon[:, M_SINCE] >= ARM_PERIODS * N  # two periods into the stage
-        change = np.clip(e - past, -self.clip, self.clip)
-        mon[:, M_AP] += np.where(armed, self.a_ap * (change**2 - mon[:, M_AP]), 0.0)
-        held_e = np.clip(e, -self.per_clip, self.per_clip)
-        mon[:, M_PER] += np.where(armed, self.a_ap * (held_e**2 - mon[:, M_PER]), 0.0)
-        mon[np.arange(n), slot] = e
-        # the fallback's loop is judged on divergence alone: after a hand-over it settles from
-        # the policy's oscillation, slowly where it is near its own margin (module docstring)
-        grace = (stage_before > 0.0) & (k - mon[:, M_SINCE] < GRACE_PERIODS * N)
-        trip = (((np.sqrt(mon[:, M_ERR]) > self.spec.error_mm * 1e-3) & ~grace)
-                | (((np.sqrt(mon[:, M_AP]) > self.spec.aperiodic_mm * 1e-3)
-                    | (np.sqrt(mon[:, M_PER]) > self.persistent))
-                   & (stage_before == 0.0)))
-        last = LAST_RESORT if self.spec.last_resort else FALLBACK
-        mon[:, M_STAGE] = np.where(trip, np.minimum(stage_before + 1.0, last), stage_before)
-        if self.spec.last_resort:  # each stage is judged on its own loop: the monitor restarts
-            moved = (mon[:, M_STAGE] > stage_before) & (mon[:, M_STAGE] < last)
-            mon[moved, M_ERR] = mon[moved, M_AP] = mon[moved, M_PER] = 0.0
-            mon[moved, M_SINCE] = k[moved] + 1
-        driving = mon[:, M_STAGE] > 0.0
-        a, inner = self.policy.predict(observation, inner, episode_start, deterministic)
-        a2 = np.atleast_2d(a)
-        mon[np.arange(n), slot + N] = a2[:, 0]
-        mon[np.arange(n), slot + 2 * N] = a2[:, 1]
-        mon[:, M_STEP] += 1
-        if not driving.any():  # the fallback runs only once it drives
-            return a, (inner, None, mon, None)
-        new = driving & ~(stage_before > 0.0) if fb is not None else driving
-        take_over = getattr(self.fallback, "take_over", None)
-        if take_over is None:  # no bumpless transfer: from zero state
-            b, fb = self.fallback.predict(observation, fb, new[0] if single else new,
-                                          deterministic)
-        else:
-            fb = take_over(rows, self.held(mon), fb, new) if new.any() else fb
-            b, fb = self.fallback.predict(observation, fb, None, deterministic)
-        out = np.where(driving[:, None], np.atleast_2d(b), a2)
-        resort = mon[:, M_STAGE] >= LAST_RESORT
-        if resort.any():  # the last resort, from its rest state on the rows it takes over
-            fresh = resort & (stage_before < LAST_RESORT)
-            c, lr = self.last.predict(observation, lr, fresh[0] if single else fresh,
-                                      deterministic)
-            out[resort] = np.atleast_2d(c)[resort]
-        out = out.astype(np.float32)
-        return (out[0] if single else out), (inner, fb, mon, lr)
+        slot = k % N
+        past = mon.errors[r, slot]  # e one period ago (zero within the first)
+        age = k - mon.since  # steps into the stage
+        tripped = np.zeros((n, len(self.spec.monitors)), dtype=bool)
+        for j, m in enumerate(self.spec.monitors):
+            mon.mean_sq[m.name] = m.update(mon.mean_sq[m.name], e, past,
+                                           age >= m.arm_periods * N, self.dt)
+            tripped[:, j] = m.tripped(mon.mean_sq[m.name])
+        mon.errors[r, slot] = e
+        trip = (tripped & self.judges[before]).any(axis=1) & (age >= self.grace_steps[before])
+        mon.stage = before + trip  # the last stage has no monitors: it never trips
+        for name in mon.mean_sq:  # the new stage's loop is judged on its own
+            mon.mean_sq[name][trip] = 0.0
+        mon.since[trip] = k[trip] + 1
 
-    def held(self, mon: np.ndarray) -> np.ndarray:
+        a, inner = self.policy.predict(observation, state.policy, episode_start, deterministic)
+        a2 = np.atleast_2d(a)
+        mon.actions[r, 0, slot], mon.actions[r, 1, slot] = a2[:, 0], a2[:, 1]
+        mon.step = k + 1
+        if not (mon.stage > POLICY).any():  # the later stages run only while one drives
+            return a, SupervisedState(inner, (None,) * later, mon)
+        out, states = a2, list(state.stages)
+        for s, ctrl in enumerate(self.controllers, start=FALLBACK):
+            at = mon.stage >= s
+            if not at.any():
+                continue
+            st = states[s - 1]
+            fresh = at & (before < s) if st is not None else at  # rows it takes over
+            take_over = getattr(ctrl, "take_over", None) if s == FALLBACK else None
+            if take_over is None:  # from its rest state
+                b, st = ctrl.predict(observation, st, fresh[0] if single else fresh,
+                                     deterministic)
+            else:  # bumpless: from the command the policy held
+                st = take_over(rows, self.held(mon), st, fresh) if fresh.any() else st
+                b, st = ctrl.predict(observation, st, None, deterministic)
+            states[s - 1] = st
+            out = np.where(at[:, None], np.atleast_2d(b), out)
+        out = out.astype(np.float32)
+        return (out[0] if single else out), SupervisedState(inner, tuple(states), mon)
+
+    def held(self, mon: MonitorState) -> np.ndarray:
         """(n, 2) per row, the mean of the policy's actions over the last reference period (or
         over the steps so far, within the first): the command the fallback takes over."""
-        N, r = self.n_period, M_RING
-        filled = np.minimum(mon[:, M_STEP], N)[:, None]
-        return np.stack([mon[:, r + N:r + 2 * N].sum(axis=1),
-                         mon[:, r + 2 * N:].sum(axis=1)], axis=-1) / np.maximum(filled, 1.0)
+        filled = np.minimum(mon.step, self.n_period)[:, None]
+        return mon.actions.sum(axis=-1) / np.maximum(filled, 1.0)
 
     @staticmethod
     def stage(state: Any) -> np.ndarray | None:
         """Per row, who drives: ``POLICY``, ``FALLBACK`` or ``LAST_RESORT`` (None before the
         first step)."""
-        return None if state is None else np.asarray(state[2])[:, M_STAGE].astype(np.int8)
+        return None if state is None else state.monitor.stage.astype(np.int8)
 
 
 def took_over(policy: Policy, state: Any) -> np.ndarray | None:
