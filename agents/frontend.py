@@ -464,9 +464,7 @@ class Frontend:
 
     def width(self, obs_dim: int) -> int:
         """Number of features of an observation with ``obs_dim`` columns."""
-        if self.features is None:
-            return obs_dim
-        return self.features.space(spaces.Box(-np.inf, np.inf, (obs_dim,))).shape[0]
+        return _width(self.features, obs_dim)
 
     def observe(self, raw: np.ndarray, state: np.ndarray, fresh: np.ndarray | bool
                 ) -> np.ndarray:
@@ -497,6 +495,14 @@ class Frontend:
         out = np.empty(len(state))
         _estimate_rows(a_F, raw, state, self.settings, out)
         return out
+
+
+@functools.lru_cache(maxsize=64)
+def _width(features: FeatureSpec | None, obs_dim: int) -> int:
+    """``Frontend.width``, once per spec (the space's length: one layout)."""
+    if features is None:
+        return obs_dim
+    return features.space(spaces.Box(-np.inf, np.inf, (obs_dim,))).shape[0]
 
 
 def new_state(n: int) -> np.ndarray:

@@ -170,7 +170,7 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
 
 def test_both_policies_check_the_estimator_setting():
     # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
-    # the training wrapper refuses it (one check: agents.wrappers.adapt_time_constant)
+    # the training wrapper refuses it (one check: agents.frontend.adapt_time_constant)
     fs = (20.0, 0.3, 1.0)
     layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
     makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),
