@@ -225,6 +225,8 @@ def benchmark(run_dir: str, n_actions: int = 20_000, n_reference: int = 2_000,
 
     import gymnasium as gym
 
+    # agents.policies imports this module (load_run's deployed path): the benchmark, which
+    # loads runs, belongs above both, where the CLI would import it from
     from agents.policies import load_run
     from mpa_gym.hardware import protocol as proto
     from mpa_gym.hardware.emulator import EmulatorProcess
