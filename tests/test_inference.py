@@ -1,4 +1,10 @@
-"""The deployed (compiled) inference path against SB3's deterministic action."""
+"""The deployed (compiled) inference path against SB3's deterministic action.
+
+Both paths call the same front-end kernels (``mpa_gym.agents.learned.frontend``: features, action map, episode
+record; tested against independent references in ``tests/test_wrappers.py``), so what they can
+disagree on is their own part, the normaliser and the network: that is checked option by
+option. One trained run checks the whole path end to end (the front-end wired in the same
+order around the network)."""
 
 from __future__ import annotations
 
@@ -8,13 +14,13 @@ import pytest
 import yaml
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.policies import LearnedPolicy, load_run
-from mpa_gym.agents.learned.wrappers import FeatureSpec
 from mpa_gym.agents.training.train import train
 
 import mpa_gym  # noqa: F401
 
-# SB3 runs the network in float32, the deployed path in float64: the actions differ by float32
-# rounding of the features and the 64-wide layers (~1e-7 of O(1) values), far inside 1e-6.
+# SB3 runs the normaliser's output and the network in float32, the deployed path in float64:
+# the actions differ by float32 rounding through the 64-wide layers (~1e-7 of O(1) values), far
+# inside 1e-6.
 ATOL = 1e-6
 
 
@@ -55,6 +61,9 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     sb3, cfg = load_run(tiny_run)
     deployed, _ = load_run(tiny_run, deployed=True)
     assert isinstance(deployed, DeployedPolicy) and deployed.features == sb3.features
+    # one front-end: the same settings record, read by the same kernels
+    assert deployed.frontend.settings.tobytes() == sb3.frontend.settings.tobytes()
+    assert deployed.frontend.settings[0]["adapt"]  # the default config's estimator included
     task = {k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"}
     env = gym.make("MPALegResidual-v0", scenario="load_1kg", task={**task, "episode_s": 5.0})
     err, moved = compare(sb3, deployed, env)
@@ -62,25 +71,14 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     assert err < ATOL, err
 
 
-def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=True, seed=0,
-               adapt_s=None):
+def _untrained(env_id, policy_kwargs, normalize=True, seed=0):
     """A LearnedPolicy around a freshly initialised PPO (random weights) and a normaliser with
-    made-up statistics, for the branches the default config does not take."""
-    from mpa_gym.agents.learned.wrappers import ForceStiffnessAction, TrackingErrorObservation
+    made-up statistics, on the env's observation itself (no front-end): its action is the
+    normaliser and the network alone."""
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    def make():
-        env = gym.make(env_id, task={"episode_s": 3.0})
-        if features is not None:
-            env = TrackingErrorObservation(env, **features)
-        if force_stiffness is not None:
-            env = ForceStiffnessAction(env, force_N=force_stiffness[0],
-                                       stiffness_rel=force_stiffness[1],
-                                       stiffness_adapt_s=adapt_s)
-        return env
-
-    venv = DummyVecEnv([make])
+    venv = DummyVecEnv([lambda: gym.make(env_id, task={"episode_s": 3.0})])
     norm = None
     if normalize:
         norm = VecNormalize(venv, norm_reward=False, clip_obs=5.0)
@@ -92,35 +90,32 @@ def _untrained(env_id, features, policy_kwargs, force_stiffness=None, normalize=
     # ortho_init=False: torch's default init, whose action layer is not scaled down to ~0.01
     model = PPO("MlpPolicy", venv, policy_kwargs={**policy_kwargs, "ortho_init": False},
                 seed=seed, device="cpu")
-    fs = None if force_stiffness is None else (*force_stiffness, 1.0)
-    return LearnedPolicy(model, norm, FeatureSpec(**features) if features else None, 0.01, fs,
-                         adapt_s)
+    return LearnedPolicy(model, norm, None, 0.01)
 
 
-@pytest.mark.parametrize("env_id,features,policy_kwargs,fs,normalize,adapt_s", [
-    ("MPALeg-v0", None, {"net_arch": [32, 32, 16]}, None, True, None),
-    ("MPALeg-v0", {"harmonics": 2, "previous_action": True, "mask_pressures": True},
-     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ReLU}, None, False, None),
-    ("MPALegResidual-v0", {"harmonics": 1, "fine_error_m": 0.001, "remodulate": True},
-     {"net_arch": [16]}, None, True, None),
-    ("MPALegResidual-v0", {"errors_only": True, "harmonics": 2, "remodulate": True,
-                           "previous_action": True},
-     {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ELU}, (20.0, 0.3), True,
-     None),
-    # the stiffness estimator, with a time constant short enough to move within the episode
-    ("MPALegResidual-v0", {"errors_only": True, "harmonics": 1, "previous_action": True},
-     {"net_arch": [32]}, (20.0, 0.3), True, 0.2),
+@pytest.mark.parametrize("env_id,policy_kwargs,normalize", [
+    ("MPALeg-v0", {"net_arch": [32, 32, 16]}, True),
+    ("MPALeg-v0", {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ReLU}, False),
+    ("MPALegResidual-v0", {"net_arch": [16]}, True),
+    ("MPALegResidual-v0", {"net_arch": [64, 64], "activation_fn": __import__("torch").nn.ELU},
+     True),
+    ("MPALegResidual-v0", {"net_arch": [32], "activation_fn":
+                           __import__("torch").nn.LeakyReLU}, True),
 ])
-def test_deployed_path_covers_every_feature_and_layer_option(env_id, features, policy_kwargs,
-                                                             fs, normalize, adapt_s):
-    sb3 = _untrained(env_id, features, policy_kwargs, fs, normalize, adapt_s=adapt_s)
-    deployed = DeployedPolicy.from_learned(sb3, 9 if env_id == "MPALegResidual-v0" else 8)
-    err, moved = compare(sb3, deployed, gym.make(env_id, task={"episode_s": 3.0}))
-    assert moved > 1e-2  # the actions are not trivially zero
-    assert err < ATOL, err
-    if adapt_s is not None:  # the estimator acted: the same weights without it act otherwise
-        plain = _untrained(env_id, features, policy_kwargs, fs, normalize, adapt_s=None)
-        assert compare(sb3, plain, gym.make(env_id, task={"episode_s": 3.0}))[0] > 1e-3
+def test_deployed_normaliser_and_network_equal_sb3(env_id, policy_kwargs, normalize):
+    # every layer and activation option, with and without the normaliser, on observations
+    # spread over and beyond the normaliser's clip (±5 after scaling) and the action bounds
+    sb3 = _untrained(env_id, policy_kwargs, normalize)
+    dim = 9 if env_id == "MPALegResidual-v0" else 8
+    deployed = DeployedPolicy.from_learned(sb3, dim)
+    obs = np.random.default_rng(7).normal(0.0, 3.0, (300, dim)).astype(np.float32)
+    ours = np.array([deployed.act(o, True).copy() for o in obs])
+    theirs, _ = sb3.predict(obs)
+    assert np.max(np.abs(theirs)) > 1e-2  # the actions are not trivially zero
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=ATOL)
+    if normalize:  # the check can fail: the normaliser's statistics matter
+        sb3.normalizer.obs_rms.mean = sb3.normalizer.obs_rms.mean + 0.5
+        assert np.max(np.abs(sb3.predict(obs)[0] - ours)) > 1e-3
 
 
 def test_deployed_policy_refuses_a_wrong_observation(tiny_run):
@@ -174,7 +169,7 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
 
 def test_both_policies_check_the_estimator_setting():
     # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
-    # the training wrapper refuses it (one check: mpa_gym.agents.learned.wrappers.adapt_time_constant)
+    # the training wrapper refuses it (one check: mpa_gym.agents.learned.frontend.adapt_time_constant)
     fs = (20.0, 0.3, 1.0)
     layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
     makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),

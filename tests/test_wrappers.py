@@ -7,20 +7,20 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
-from mpa_gym.agents.learned.wrappers import (
-    ADAPT_STARTED,
-    ADAPT_STATE,
+from mpa_gym.agents.learned.frontend import (
     ADAPT_VAR_M2,
+    STATE,
+    ActionSpec,
     FeatureSpec,
+    Frontend,
+    adapt_time_constant,
+    new_state,
+)
+from mpa_gym.agents.learned.wrappers import (
     ForceStiffnessAction,
     ForceStiffnessVectorAction,
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
-    adapt_stiffness,
-    adapt_time_constant,
-    force_stiffness_to_residual,
-    harmonic_basis,
-    integral_step,
 )
 
 import mpa_gym  # noqa: F401  (registers the env ids)
@@ -30,51 +30,75 @@ from mpa_gym.model.params import BAR
 SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
 
 
+def _error_obs(e, phi):
+    """The env's observations (n, 9) with tracking error ``e`` (X = 0, X̂ = e) at phase φ."""
+    obs = np.zeros((np.size(phi), 9), dtype=np.float32)
+    obs[:, 2], obs[:, 4], obs[:, 5] = e, np.sin(phi), np.cos(phi)
+    return obs
+
+
+# The kernels take the env's float32 observation: e and the basis sin hφ, cos hφ each carry
+# a rounding of 2^-24 relative, so an integral over T of |e| ≤ 5 mm is off by at most
+# T · 5e-3 · 3 · 6e-8 ≈ 3e-9 m s (the exact sums below are ~1e-3).
+INTEGRAL_ATOL = 5e-9
+
+
 def test_harmonic_integrals_are_fourier_coefficients_over_a_period():
-    # e = c0 + c1 sin φ + c2 cos φ + c3 sin 2φ integrated over one period T with step dt:
-    # I_0 = c0 T, I_s1 = c1 T/2, I_c1 = c2 T/2, I_s2 = c3 T/2 (orthogonality; the rectangle
-    # rule is exact for trigonometric polynomials of degree < N on N equispaced points).
+    # e = c0 + c1 sin φ + c2 cos φ + c3 sin 2φ + c4 cos 2φ integrated over one period T with step
+    # dt: I_0 = c0 T, I_s1 = c1 T/2, I_c1 = c2 T/2, I_s2 = c3 T/2, I_c2 = c4 T/2 (orthogonality;
+    # the rectangle rule is exact for trigonometric polynomials of degree < N on N equispaced
+    # points). An episode's first observation is not integrated (its integrals are zero), so
+    # every step here continues the zero record.
     T, n = 3.0, 300
-    dt = T / n
-    c0, c1, c2, c3 = 1e-3, -2e-3, 0.5e-3, 0.7e-3
-    integ = np.zeros(5)
+    c0, c1, c2, c3, c4 = 1e-3, -2e-3, 0.5e-3, 0.7e-3, -0.4e-3
+    front = Frontend(FeatureSpec(harmonics=2, limit_m_s=1.0), None, T / n)
+    state = new_state(1)
     for i in range(n):
         phi = 2 * np.pi * i / n
-        e = c0 + c1 * np.sin(phi) + c2 * np.cos(phi) + c3 * np.sin(2 * phi)
-        obs = np.zeros(9)
-        obs[2], obs[4], obs[5] = e, np.sin(phi), np.cos(phi)  # X = 0, X̂ = e
-        integ = integral_step(integ, obs, dt, 1.0)
-    np.testing.assert_allclose(integ, [c0 * T, c1 * T / 2, c2 * T / 2, c3 * T / 2, 0.0],
-                               atol=1e-15)
-    # the basis itself: [1, sin φ, cos φ, sin 2φ, cos 2φ]
-    obs = np.zeros(9)
-    obs[4], obs[5] = np.sin(0.3), np.cos(0.3)
-    np.testing.assert_allclose(harmonic_basis(obs, 2),
-                               [1, np.sin(0.3), np.cos(0.3), np.sin(0.6), np.cos(0.6)],
-                               rtol=1e-15)
+        e = c0 + c1 * np.sin(phi) + c2 * np.cos(phi) + c3 * np.sin(2 * phi) + \
+            c4 * np.cos(2 * phi)
+        front.observe(_error_obs(e, phi), state, False)
+    np.testing.assert_allclose(state["integ"][0],
+                               [c0 * T, c1 * T / 2, c2 * T / 2, c3 * T / 2, c4 * T / 2, 0.0,
+                                0.0, 0.0, 0.0, 0.0, 0.0], rtol=0, atol=INTEGRAL_ATOL)
 
 
 def test_remodulated_integrals_are_the_resonant_output_and_its_quadrature():
     # after integrating e = c1 sin φ + c2 cos φ over one period T, (I_s1, I_c1) = (c1, c2) T/2,
     # so the remodulated pair is R(φ) = I_s1 sin φ + I_c1 cos φ = (T/2) e(φ), in phase with the
-    # error (a resonant integrator's output), and Q(φ) = (T/2) e(φ + π/2), a quarter period ahead
+    # error (a resonant integrator's output), and Q(φ) = (T/2) e(φ + π/2), a quarter period
+    # ahead. Read at zero error, which leaves the integrals as they are.
     T, n = 3.0, 300
     c1, c2 = -2e-3, 0.5e-3
-    spec = FeatureSpec(harmonics=1, remodulate=True, errors_only=True)
-    integ = np.zeros(3)
+    front = Frontend(FeatureSpec(harmonics=1, remodulate=True, errors_only=True,
+                                 limit_m_s=1.0), None, T / n)
+    state = new_state(1)
     for i in range(n):
         phi = 2 * np.pi * i / n
-        obs = np.zeros(9)
-        obs[2], obs[4], obs[5] = c1 * np.sin(phi) + c2 * np.cos(phi), np.sin(phi), np.cos(phi)
-        integ = integral_step(integ, obs, T / n, 1.0)
+        front.observe(_error_obs(c1 * np.sin(phi) + c2 * np.cos(phi), phi), state, False)
     for phi in np.linspace(0, 2 * np.pi, 7):
-        obs = np.zeros(9)
-        obs[4], obs[5] = np.sin(phi), np.cos(phi)
-        f = spec.features(obs[None], integ[None], np.zeros((1, 2)))[0]
+        f = front.observe(_error_obs(0.0, phi), state.copy(), False)[0]
         assert f.shape == (2 + 3 + 2,)  # e, ė, I_0, I_s1, I_c1, R_1, Q_1
         e = c1 * np.sin(phi) + c2 * np.cos(phi)
         e_lead = c1 * np.sin(phi + np.pi / 2) + c2 * np.cos(phi + np.pi / 2)
-        np.testing.assert_allclose(f[-2:], [T / 2 * e, T / 2 * e_lead], rtol=1e-6, atol=1e-9)
+        # the integrals' error, and the float32 features' rounding (6e-8 of ≤ 3e-3)
+        np.testing.assert_allclose(f[-2:], [T / 2 * e, T / 2 * e_lead], rtol=0,
+                                   atol=2 * INTEGRAL_ATOL)
+
+
+def test_an_episode_starts_from_the_zero_record():
+    # an episode's first observation restarts every field of the record (integrals, previous
+    # action, each of the stiffness estimator's) and is not integrated; the features then
+    # show zero integrals and previous action
+    front = Frontend(FeatureSpec(harmonics=2, previous_action=True), None, 0.01)
+    state = new_state(3)
+    for name in STATE.names:  # every field away from its start
+        state[name] = 1
+    feats = front.observe(_error_obs(1e-3, np.array([0.1, 0.2, 0.3])), state,
+                          np.array([True, False, True]))
+    assert state[[0, 2]].tobytes() == new_state(2).tobytes()
+    assert np.all(feats[[0, 2], 9 + 2:] == 0.0) and np.all(feats[1, 9 + 2:] != 0.0)
+    assert np.all(feats[:, 9] == np.float32(1e-3))  # the error itself is there
 
 
 def test_feature_and_map_misuse_is_named():
@@ -93,35 +117,38 @@ def test_feature_and_map_misuse_is_named():
 
 
 def test_integrals_are_clipped_to_the_anti_windup_limit():
-    obs = np.zeros(9)
-    obs[2], obs[5] = 0.5, 1.0  # a 0.5 m error at φ = 0
-    integ = integral_step(np.zeros(3), obs, 0.01, 0.02)
-    integ = integral_step(integ, obs, 0.01, 0.02)
-    np.testing.assert_array_equal(integ, [0.01, 0.0, 0.01])
+    obs = _error_obs(0.5, 0.0)  # a 0.5 m error at φ = 0
+    front = Frontend(FeatureSpec(harmonics=1, limit_m_s=0.02), None, 0.01)
+    state = new_state(1)
+    for _ in range(2):
+        front.observe(obs, state, False)
+    np.testing.assert_array_equal(state["integ"][0, :3], [0.01, 0.0, 0.01])
     for _ in range(10):
-        integ = integral_step(integ, obs, 0.01, 0.02)
-    np.testing.assert_array_equal(integ, [0.02, 0.0, 0.02])
+        front.observe(obs, state, False)
+    np.testing.assert_array_equal(state["integ"][0, :3], [0.02, 0.0, 0.02])
 
 
 def test_force_stiffness_action_round_trips_through_the_nominal_model():
     # the residual it returns changes the nominal model's F by a_F·force_N and k by
     # a_k·rel·k̂ at the reference position (inside the clip range)
     rng = np.random.default_rng(2)
-    obs = np.zeros((20, 9))
+    obs = np.zeros((20, 9), dtype=np.float32)  # the env's observations
     obs[:, 2] = rng.uniform(0.78, 0.82, 20)
     obs[:, 8] = rng.uniform(0.4, 0.6, 20)  # k̂ [kN/m]
+    x_ref, k_ref = obs[:, 2].astype(float), obs[:, 8].astype(float) * 1000.0
     a = rng.uniform(-0.5, 0.5, (20, 2))
     scale = 1.5
-    res = force_stiffness_to_residual(a, obs, 20.0, 0.3, scale)
-    assert np.all(np.abs(res) < 1.0)  # not clipped
-    J = affine_in_pressures(obs[:, 2], np.zeros(20)).J
+    front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3), 0.01, scale)
+    res = front.act(a, obs, new_state(20))
+    assert res.dtype == np.float32 and np.all(np.abs(res) < 1.0)  # not clipped
+    J = affine_in_pressures(x_ref, np.zeros(20)).J
     dp = res.astype(float) * scale * BAR
     dF, dk = np.einsum("nij,nj->ni", J, dp).T
     # float32 actions: 6e-8 relative of a residual ≤ 1.5 bar
     np.testing.assert_allclose(dF, a[:, 0] * 20.0, atol=1e-4)
-    np.testing.assert_allclose(dk, a[:, 1] * 0.3 * obs[:, 8] * 1000.0, atol=1e-3)
+    np.testing.assert_allclose(dk, a[:, 1] * 0.3 * k_ref, atol=1e-3)
     # a force correction alone leaves the nominal stiffness unchanged
-    res_f = force_stiffness_to_residual(np.c_[a[:, 0], np.zeros(20)], obs, 20.0, 0.3, scale)
+    res_f = front.act(np.c_[a[:, 0], np.zeros(20)], obs, new_state(20))
     dk_f = np.einsum("nj,nj->n", J[:, 1], res_f.astype(float) * scale * BAR)
     np.testing.assert_allclose(dk_f, 0.0, atol=1e-3)
 
@@ -184,11 +211,7 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
     for _ in range(45):  # crosses the 30-step episode end
         a = rng.uniform(-1, 1, (2, 2))
         env_obs = single.env.env_obs  # the map works at the env's X̂ and k̂, shown or not
-        given = a[:1] if adapt is None else adapt_stiffness(  # a_k the estimator's
-            a[:1], env_obs[None], single._adapt.copy(), single.dt, adapt, single.stiffness_rel,
-            single.force_N)
-        applied = force_stiffness_to_residual(given, env_obs[None], single.force_N,
-                                              single.stiffness_rel, single.scale_bar)[0]
+        applied = single.frontend.act(np.clip(a[:1], -1, 1), env_obs, single.state.copy())[0]
         so, _, te, tr, _ = single.step(a[0])
         vo, _, _, _, vinfo = vec.step(a)
         env_obs = single.env.env_obs
@@ -246,9 +269,11 @@ def _estimate(slope, t_end, kick=None, tau=3.0, k_ref=545.0):
     reference (exact tracking), and its state; ``kick`` = (t0, t1, e): from t0 to t1 the
     tracking error is e and ΔF swings ±20 N at 5 Hz."""
     dt, w = 0.01, 2 * np.pi / 3.0
-    obs = np.zeros((1, 9))
+    obs = np.zeros((1, 9), dtype=np.float32)
     obs[0, 8] = k_ref / 1000.0  # k̂ [kN/m]
-    state = np.zeros((1, ADAPT_STATE))
+    front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3, stiffness_adapt_s=tau),
+                     dt, 1.0)
+    state = new_state(1)
     a_k = 0.0
     for i in range(round(t_end / dt)):
         t = i * dt
@@ -258,7 +283,7 @@ def _estimate(slope, t_end, kick=None, tau=3.0, k_ref=545.0):
         if kick is not None and kick[0] <= t < kick[1]:
             obs[0, 0] = x_ref - kick[2]
             dF = 20.0 * np.sign(np.sin(2 * np.pi * 5.0 * t))
-        a_k = adapt_stiffness(np.array([[dF / 20.0, 0.7]]), obs, state, dt, tau, 0.3, 20.0)[0, 1]
+        a_k = front.estimate(np.array([dF / 20.0]), obs, state)[0]
     return a_k, state
 
 
@@ -290,7 +315,7 @@ def test_stiffness_estimator_ignores_a_kick_and_restarts_each_episode():
     assert abs(unweighted - settled) > 10 * abs(kicked - settled)
     # a zero state (an episode's start) starts from the first observation: no estimate yet
     a_k, state = _estimate(34.0, 0.01)
-    assert a_k == 0.0 and state[0, ADAPT_STARTED] == 1.0 and state[0, 0] == 0.8
+    assert a_k == 0.0 and state["est_started"][0] and state["est_x_ref_m"][0] == np.float32(0.8)
 
 
 def test_stiffness_estimator_setting_is_checked():

@@ -3,15 +3,17 @@
 ``LearnedPolicy.predict`` goes through SB3 and torch: tensors, a thread pool, Python glue, a few
 hundred microseconds and a garbage-producing allocation per step. ``DeployedPolicy`` computes the
 same deterministic action from the exported weights in one compiled (numba) call on buffers
-allocated once: the tracking-error features and their integrals (``TrackingErrorObservation``),
-the observation normaliser (VecNormalize's running mean and variance, its clip), the policy MLP
-(SB3's ``mlp_extractor.policy_net`` then ``action_net``: the mean action, ``deterministic=True``),
-the clip to the action space, and the force–stiffness map (``ForceStiffnessAction``) with its
-stiffness estimator. Single
-threaded, no framework, no allocation per step: what a real-time loop can afford.
+allocated once: the controller front-end's features (``mpa_gym.agents.learned.frontend.observe_row``, the
+kernel the training wrappers and ``LearnedPolicy`` call), the observation normaliser
+(VecNormalize's running mean and variance, its clip), the policy MLP (SB3's
+``mlp_extractor.policy_net`` then ``action_net``: the mean action, ``deterministic=True``), the
+clip to the action space, and the front-end's action map with its stiffness estimator
+(``mpa_gym.agents.learned.frontend.act_row``). Single threaded, no framework, no allocation per step: what a
+real-time loop can afford.
 
-It is equal to ``LearnedPolicy.predict`` (SB3's deterministic action) to 1e-6
-(``tests/test_inference.py``); SB3 computes in float32, this in float64.
+Only the normaliser and the network are its own; they equal ``LearnedPolicy.predict``'s (SB3's
+deterministic action) to 1e-6 (``tests/test_inference.py``): SB3 computes them in float32,
+this in float64.
 """
 
 from __future__ import annotations
@@ -21,90 +23,14 @@ from typing import Any
 
 import numba
 import numpy as np
-from mpa_gym.agents.learned.wrappers import (
-    ADAPT_STARTED,
-    ADAPT_STATE,
-    FeatureSpec,
-    _adapt_commit,
-    _adapt_row,
-    _constants,
-    adapt_time_constant,
-)
+from mpa_gym.agents.learned.frontend import FeatureSpec, Frontend, act_row, new_state, observe_row
 
-from mpa_gym.model import fast
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
-from mpa_gym.task.contract import OBS_COS as OCOS
-from mpa_gym.task.contract import OBS_KREF as OK
-from mpa_gym.task.contract import OBS_KREF_SCALE
-from mpa_gym.task.contract import OBS_PE as OPE
-from mpa_gym.task.contract import OBS_PF as OPF
-from mpa_gym.task.contract import OBS_SIN as OSIN
-from mpa_gym.task.contract import OBS_V as OV
-from mpa_gym.task.contract import OBS_VREF as OVR
-from mpa_gym.task.contract import OBS_X as OX
-from mpa_gym.task.contract import OBS_XREF as OXR
+from mpa_gym.model.params import DEFAULT_PARAMS, Params
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 # activation codes of the hidden layers (SB3's activation_fn)
 ACTIVATIONS = {"Tanh": 0, "ReLU": 1, "ELU": 2, "LeakyReLU": 3}
-
-
-@numba.njit(**JIT)
-def _features(raw, integ, prev, fresh, on, errors_only, mask_p, prev_act, fine, remod,
-              harmonics, limit, dt, basis, feat):
-    """Update the integrals with ``raw`` (unless ``fresh``: an episode's first observation, whose
-    integrals are zero) and write ``FeatureSpec.features`` (``on``; else the observation itself)
-    into ``feat``; returns its length."""
-    if not on:
-        for i in range(raw.shape[0]):
-            feat[i] = raw[i]
-        return raw.shape[0]
-    # harmonic basis [1, sin φ, cos φ, sin 2φ, cos 2φ, …] by the complex recurrence z ← z z1,
-    # as harmonic_basis computes it
-    s1, c1 = raw[OSIN], raw[OCOS]
-    basis[0] = 1.0
-    zr, zi = 1.0, 0.0
-    for h in range(harmonics):
-        zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
-        basis[1 + 2 * h] = zi
-        basis[2 + 2 * h] = zr
-    m = 1 + 2 * harmonics
-    e = raw[OXR] - raw[OX]
-    if fresh:
-        for i in range(m):
-            integ[i] = 0.0
-        prev[0] = 0.0
-        prev[1] = 0.0
-    else:
-        for i in range(m):
-            integ[i] = min(max(integ[i] + e * basis[i] * dt, -limit), limit)
-    n = 0
-    if not errors_only:
-        for i in range(raw.shape[0]):
-            feat[n] = 0.0 if (mask_p and (i == OPE or i == OPF)) else raw[i]
-            n += 1
-    feat[n] = e
-    feat[n + 1] = raw[OVR] - raw[OV]
-    n += 2
-    for i in range(m):
-        feat[n] = integ[i]
-        n += 1
-    if prev_act:
-        feat[n] = prev[0]
-        feat[n + 1] = prev[1]
-        n += 2
-    if not math.isnan(fine):
-        feat[n] = min(max(e, -fine), fine)
-        n += 1
-    if remod:
-        for h in range(harmonics):  # R_h = I_s sin + I_c cos
-            feat[n + h] = integ[1 + 2 * h] * basis[1 + 2 * h] + integ[2 + 2 * h] * basis[2 + 2 * h]
-        for h in range(harmonics):  # Q_h = I_s cos − I_c sin
-            feat[n + harmonics + h] = (integ[1 + 2 * h] * basis[2 + 2 * h]
-                                       - integ[2 + 2 * h] * basis[1 + 2 * h])
-        n += 2 * harmonics
-    return n
 
 
 @numba.njit(**JIT)
@@ -141,37 +67,18 @@ def _mlp(x, n_in, weights, shapes, offsets, act, h_a, h_b, out):
 
 
 @numba.njit(**JIT)
-def _forward(raw, integ, prev, adapt, fresh, spec_i, spec_f, mean, inv_std, clip_obs, weights,
-             shapes, offsets, act, a_low, a_high, fs, consts, basis, feat, h_a, h_b, out):
-    """One action (module docstring) into ``out``; the state (integrals, previous action,
-    stiffness estimator) is updated in place."""
-    n = _features(raw, integ, prev, fresh, spec_i[5] > 0, spec_i[0] > 0, spec_i[1] > 0,
-                  spec_i[2] > 0, spec_f[0], spec_i[3] > 0, spec_i[4], spec_f[1], spec_f[2],
-                  basis, feat)
+def _forward(raw, state, fresh, cfg, consts, mean, inv_std, clip_obs, weights, shapes, offsets,
+             act, a_low, a_high, feat, x, h_a, h_b, net, out):
+    """One action (module docstring) into ``out``; the front-end record ``state[0]`` is
+    updated in place."""
+    st, c = state[0], cfg[0]
+    n = observe_row(raw, st, fresh, c, feat)
     for i in range(n):  # VecNormalize: clip((obs − μ) / √(σ² + ε), ±clip)
-        feat[i] = min(max((feat[i] - mean[i]) * inv_std[i], -clip_obs), clip_obs)
-    _mlp(feat, n, weights, shapes, offsets, act, h_a, h_b, out)
-    for k in range(out.shape[0]):  # SB3 clips a Box action to the space
-        out[k] = min(max(out[k], a_low[k]), a_high[k])
-    if fs[0] > 0.0:  # ForceStiffnessAction: (a_F, a_k) → residual (a_e, a_f) on the nominal model
-        x = raw[OXR]
-        k_ref = raw[OK] * OBS_KREF_SCALE
-        if fs[4] > 0.0:  # its stiffness estimator replaces a_k
-            if fresh:
-                adapt[ADAPT_STARTED] = 0.0
-            out[1] = _adapt_row(adapt, x, x - raw[OX], k_ref, spec_f[2], fs[4], fs[2])
-            _adapt_commit(adapt, out[0], fs[1])
-        F0, k0 = fast.force_and_stiffness(x, 0.0, 0.0, 0.0, consts)
-        Fe, ke = fast.force_and_stiffness(x, 0.0, BAR, 0.0, consts)
-        Ff, kf = fast.force_and_stiffness(x, 0.0, 0.0, BAR, consts)
-        j11, j12, j21, j22 = (Fe - F0) / BAR, (Ff - F0) / BAR, (ke - k0) / BAR, (kf - k0) / BAR
-        dF = min(max(out[0], -1.0), 1.0) * fs[1]
-        dk = min(max(out[1], -1.0), 1.0) * fs[2] * k_ref
-        det = j11 * j22 - j12 * j21
-        out[0] = min(max((dF * j22 - j12 * dk) / det / fs[3], -1.0), 1.0)
-        out[1] = min(max((j11 * dk - j21 * dF) / det / fs[3], -1.0), 1.0)
-    prev[0] = min(max(out[0], -1.0), 1.0)  # what the env applies: the next features' a_prev
-    prev[1] = min(max(out[1], -1.0), 1.0)
+        x[i] = min(max((feat[i] - mean[i]) * inv_std[i], -clip_obs), clip_obs)
+    _mlp(x, n, weights, shapes, offsets, act, h_a, h_b, net)
+    for k in range(net.shape[0]):  # SB3 clips a Box action to the space
+        net[k] = min(max(net[k], a_low[k]), a_high[k])
+    act_row(net, raw, st, c, consts, out)
 
 
 class DeployedPolicy:
@@ -192,9 +99,9 @@ class DeployedPolicy:
                  ) -> None:
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation={activation!r} must be one of {sorted(ACTIVATIONS)}")
-        spec = features
-        self.features, self.dt = spec, float(dt)
-        n_feat = obs_dim if spec is None else spec.space(_box(obs_dim)).shape[0]
+        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s, params)
+        self.features, self.dt = features, float(dt)
+        n_feat = self.frontend.width(obs_dim)
         if layers[0][0].shape[1] != n_feat:
             raise ValueError(f"the network takes {layers[0][0].shape[1]} inputs but the "
                              f"observation and features give {n_feat}")
@@ -208,15 +115,6 @@ class DeployedPolicy:
         self._act = ACTIVATIONS[activation]
         n_act = layers[-1][0].shape[0]
         width = max(int(w.shape[0]) for w, _ in layers)
-        if spec is None:  # the env's observation as it is
-            # errors_only, mask_pressures, previous_action, remodulate, harmonics, features on
-            self._spec_i = np.array([0, 0, 0, 0, 0, 0], dtype=np.int64)
-            self._spec_f = np.array([math.nan, 1.0, self.dt])
-        else:
-            self._spec_i = np.array([spec.errors_only, spec.mask_pressures, spec.previous_action,
-                                     spec.remodulate, spec.harmonics, 1], dtype=np.int64)
-            self._spec_f = np.array([math.nan if spec.fine_error_m is None else spec.fine_error_m,
-                                     spec.limit_m_s, self.dt])
         if normalizer is None:
             self._mean, self._inv_std, self._clip = np.zeros(n_feat), np.ones(n_feat), math.inf
         else:
@@ -228,20 +126,13 @@ class DeployedPolicy:
                                                                                   float)
         self._high = np.full(n_act, np.inf) if action_high is None else np.asarray(action_high,
                                                                                    float)
-        tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
-        self._fs = np.zeros(5) if force_stiffness is None else np.array(  # fs[4] 0: no estimator
-            [1.0, force_stiffness[0], force_stiffness[1], force_stiffness[2] * BAR,
-             0.0 if tau is None else tau])
-        self._consts = _constants(params)
-        # buffers, allocated once
-        m = 1 if spec is None else spec.n_integrals
-        self._raw = np.zeros(obs_dim)
-        self._integ = np.zeros(m)
-        self._prev = np.zeros(2)
-        self._adapt = np.zeros(ADAPT_STATE)
-        self._basis = np.zeros(m)
-        self._feat = np.zeros(n_feat + obs_dim + 8)
+        # buffers, allocated once; the observation in the env's float32, as the other paths
+        self._raw = np.zeros(obs_dim, dtype=np.float32)
+        self._state = new_state(1)
+        self._feat = np.zeros(n_feat, dtype=np.float32)
+        self._x = np.zeros(n_feat)
         self._h_a, self._h_b = np.zeros(width), np.zeros(width)
+        self._net = np.zeros(n_act)
         self._out = np.zeros(n_act)
         self._fresh = True
         self.act(np.zeros(obs_dim), True)  # compile (or load) now, not inside the loop
@@ -296,11 +187,10 @@ class DeployedPolicy:
     def act(self, observation: np.ndarray, episode_start: bool = False) -> np.ndarray:
         """The action for one observation (a buffer the next call overwrites)."""
         self._raw[:] = observation
-        _forward(self._raw, self._integ, self._prev, self._adapt, self._fresh or episode_start,
-                 self._spec_i, self._spec_f, self._mean, self._inv_std, self._clip,
-                 self._weights, self._shapes, self._offsets, self._act, self._low, self._high,
-                 self._fs, self._consts, self._basis, self._feat, self._h_a, self._h_b,
-                 self._out)
+        _forward(self._raw, self._state, self._fresh or episode_start,
+                 self.frontend.settings, self.frontend.consts, self._mean, self._inv_std,
+                 self._clip, self._weights, self._shapes, self._offsets, self._act, self._low,
+                 self._high, self._feat, self._x, self._h_a, self._h_b, self._net, self._out)
         self._fresh = False
         return self._out
 
@@ -315,7 +205,7 @@ class DeployedPolicy:
             raise ValueError(f"observation has shape {obs.shape}; a deployed policy takes one "
                              f"observation of shape ({self.obs_dim},)")
         start = state is None or (episode_start is not None and bool(np.any(episode_start)))
-        return self.act(obs, start), self._integ
+        return self.act(obs, start), self._state
 
 
 def _box(dim: int) -> Any:
@@ -334,6 +224,9 @@ def benchmark(run_dir: str, n_actions: int = 20_000, n_reference: int = 2_000,
     import time
 
     import gymnasium as gym
+
+    # mpa_gym.agents.learned.policies imports this module (load_run's deployed path): the benchmark, which
+    # loads runs, belongs above both, where the CLI would import it from
     from mpa_gym.agents.learned.policies import load_run
 
     from mpa_gym.hardware import protocol as proto

@@ -11,18 +11,12 @@ from typing import Any
 import numpy as np
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
 from mpa_gym.agents.learned.config import TrainConfig
-from mpa_gym.agents.learned.wrappers import (
-    ADAPT_STATE,
-    ActionSpec,
-    FeatureSpec,
-    adapt_stiffness,
-    adapt_time_constant,
-    force_stiffness_to_residual,
-    integral_step,
-)
+from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
+from mpa_gym.agents.learned.inference import DeployedPolicy
 
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
+from mpa_gym.task.contract import obs_names
 
 
 class LearnedPolicy:
@@ -41,10 +35,11 @@ class LearnedPolicy:
     def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
                  dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
                  stiffness_adapt_s: float | None = None) -> None:
+        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s)
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
-        self.stiffness_adapt_s = adapt_time_constant(stiffness_adapt_s,
-                                                     force_stiffness is not None)
+        self.stiffness_adapt_s = (None if self.frontend.action is None
+                                  else self.frontend.action.stiffness_adapt_s)
 
     def _mean_action(self, obs: np.ndarray) -> np.ndarray:
         """SB3's deterministic action, ``model.predict(obs, deterministic=True)``, by the same
@@ -86,38 +81,23 @@ class LearnedPolicy:
                 episode_start: np.ndarray | None = None, deterministic: bool = True
                 ) -> tuple[np.ndarray, Any]:
         """Actions for one observation or a batch; ``state`` (returned, passed back on the next
-        call) holds each row's integrals, previous action and stiffness estimator, reset where
-        ``episode_start``."""
+        call) is each row's front-end record (``frontend.STATE``: integrals, previous action,
+        stiffness estimator), restarted where ``episode_start`` or when it is None."""
         raw = np.asarray(observation, dtype=np.float32)
         single = raw.ndim == 1
         raw = raw.reshape(1, -1) if single else raw
-        obs, spec, tau = raw, self.features, self.stiffness_adapt_s
-        n, m = raw.shape[0], (spec.n_integrals if spec is not None else 0)
-        st = None
-        if spec is not None or tau is not None:  # [integrals | previous action | estimator]
-            width = m + 2 + (ADAPT_STATE if tau is not None else 0)
-            st = np.zeros((n, width)) if state is None else np.array(state, float).reshape(n, -1)
-            if spec is not None and state is not None:
-                st[:, :m] = integral_step(st[:, :m], raw, self.dt, spec.limit_m_s)
-            if episode_start is not None:
-                st[np.asarray(episode_start, dtype=bool).reshape(-1)] = 0.0
-        if spec is not None:
-            obs = spec.features(raw, st[:, :m], st[:, m:m + 2])
+        n = raw.shape[0]
+        fresh = np.full(n, state is None)
+        if episode_start is not None:
+            fresh |= np.asarray(episode_start, dtype=bool).reshape(-1)
+        st = new_state(n) if state is None else np.array(state).reshape(n)  # a copy
+        obs = self.frontend.observe(raw, st, fresh)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
         action = (self._mean_action(obs) if deterministic
                   else self.model.predict(obs, deterministic=False)[0])
-        if self.force_stiffness is not None:
-            if tau is not None:
-                force_N, stiffness_rel, _ = self.force_stiffness
-                adapt = st[:, m + 2:].copy()
-                action = adapt_stiffness(action, raw, adapt, self.dt, tau, stiffness_rel,
-                                         force_N)
-                st[:, m + 2:] = adapt
-            action = force_stiffness_to_residual(action, raw, *self.force_stiffness)
-        if st is not None:
-            st[:, m:m + 2] = np.clip(action, -1.0, 1.0)  # what the env applies
-        return (action[0] if single else action), (st if st is not None else state)
+        action = self.frontend.act(action, raw, st)
+        return (action[0] if single else action), st
 
 
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
@@ -183,10 +163,6 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         norm.norm_reward = False
     policy = LearnedPolicy.from_config(model, norm, cfg)
     if deployed:
-        from mpa_gym.agents.learned.inference import DeployedPolicy
-
-        from mpa_gym.task.contract import obs_names
-
         return DeployedPolicy.from_learned(
             policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
     return policy, cfg

@@ -1,0 +1,510 @@
+"""The controller front-end of a learned policy: its observation features, its action map and
+its per-episode state, defined once. The training wrappers (``mpa_gym.agents.learned.wrappers``), the loaded
+policy (``mpa_gym.agents.learned.policies.LearnedPolicy``) and the compiled deployed path
+(``mpa_gym.agents.learned.inference.DeployedPolicy``) all call the row kernels below, so what a policy saw in
+training is what it sees when deployed, by construction; only the network and the normaliser
+differ between the paths (SB3's torch in float32, the compiled one in float64).
+
+Structure, in the sim engine's style (``mpa_gym.envs.sim``): compiled kernels over one row —
+``observe_row`` (features), ``act_row`` (stiffness estimator, force–stiffness map, the
+record of the applied action) — over one named, typed per-episode record (``STATE``, a
+numpy structured dtype; an episode starts from the zero record) and one settings record
+(``SETTINGS``, packed by name from ``FeatureSpec`` and ``ActionSpec`` by ``pack_settings``);
+``Frontend`` loops them over a batch for the Python callers.
+
+Observation: the env observes X and X̂ separately; a network has to subtract two numbers that each
+vary by centimetres to see a sub-millimetre error, and a memoryless policy can only answer an
+unknown static load with a proportional correction, so a steady sag remains (a PID has its
+integrator for that). ``TrackingErrorObservation`` appends e = X̂ − X, ė = V̂ − V and the integrals
+
+    I_0 = ∫ e dt,   I_sh = ∫ e sin(hφ) dt,   I_ch = ∫ e cos(hφ) dt   (h = 1 … ``harmonics``),
+
+each clipped to ±``limit_m_s`` (anti-windup), φ the reference phase the env observes. I_0 is a
+PID's integrator; the harmonic pairs are the internal model of a periodic reference (a resonant
+controller's integrators): they hold whatever periodic correction the plant needs, so a policy can
+cancel a periodic error — and the in-phase part, a force error that follows X̂ − X_0, is a
+stiffness error the policy can correct. ``mask_pressures`` zeroes the measured pressures (the
+layout stays): they echo the policy's own last command, and a policy that learned to overdrive
+lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
+action the env was last given instead, the other way to tell the command from the lag;
+``fine_error_m`` appends the error clipped to ±δ, which VecNormalize then scales to the sub-
+millimetre band (the plain error's running std is set by millimetre transients). All are
+what a controller computes from its measurements and its own commands, never a plant parameter.
+
+``errors_only`` leaves the env's observation out: the policy sees the error features alone, so it
+is a feedback law. Given X, X̂ or the phase, a policy trained on randomised plants learns the
+training distribution's average correction as a function of the phase and holds it on every
+plant, a periodic bias that its feedback then has to fight, even on the nominal plant where the
+feedforward alone is exact. Without the phase, though, the harmonic integrals cannot be
+turned back into a periodic correction; ``remodulate`` does that for the policy, appending per
+harmonic the resonant controller's output and its quadrature,
+
+    R_h = I_sh sin(hφ) + I_ch cos(hφ),   Q_h = I_sh cos(hφ) − I_ch sin(hφ),
+
+which after integrating e = c₁ sin φ + c₂ cos φ over a period T are (T/2) e(φ) and (T/2) e(φ + π/2):
+an infinite-gain loop at the reference frequency whose phase the policy sets by weighing R
+against Q, and zero while the integrals are zero, so no bias. (The raw I_sh, I_ch stay in the
+observation: their in-phase part tells a stiffness error, which the policy answers with a_k.)
+
+Action: ``ForceStiffnessAction`` lets the policy act in the coordinates the task is posed in: a
+ground-force correction ΔF = a_F · ``force_N`` and a stiffness correction Δk = a_k ·
+``stiffness_rel`` · k̂. Both are affine in the two pressures (``affine_in_pressures``), so on the
+nominal model at the reference position the pressure correction is one 2×2 solve; it is applied
+as the env's residual action (clipped to [−1, 1]). a = 0 is the feedforward expert, and a force
+correction alone leaves the nominal stiffness at k̂ — the redundancy the paper's design uses.
+``rate_penalty`` w subtracts w·|a_t − a_{t−1}|² from the reward (a_{−1} = 0 each episode), the
+action-rate term of legged-robot RL, against high-frequency corrections that a lagging regulator
+turns into a limit cycle; it shapes training only, so a trained policy runs without it.
+
+``stiffness_adapt_s`` τ replaces the policy's a_k by an estimate. On a plant whose muscles are
+not the model's (bladder C1, C2, thickness), a force correction that tracks X̂ has to cancel
+the plant's force deficit along the motion. Its slope against X̂ is then the stiffness excess
+k − k̂ at the applied pressures, less Δm ω² for a mass error (4.4 N/m per kg at the 3 s
+period; k̂ is ~545 N/m). The estimator low-passes (time constant τ) the means of X̂ and of the
+applied ΔF, their covariance c and X̂'s variance v. It low-passes the slope c / (v + v₀) once
+more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiffness_rel`` k̂).
+Each update's weight is 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
+moves it. An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
+known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period.
+Off the training plants, a_k learned from the error features went the wrong way on some
+plants; the estimate needs no learning. It is a controller's computation from its own commands
+and the reference, like the features, never a plant parameter. The action space stays (a_F,
+a_k), so a config switches the estimator on or off without another network; the policy's a_k
+is then ignored, and its Gaussian adds noise, not bias, to PPO's gradient.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+from gymnasium import spaces
+
+from mpa_gym.model import fast
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.task.contract import OBS_COS as OCOS
+from mpa_gym.task.contract import OBS_KREF as OK
+from mpa_gym.task.contract import OBS_KREF_SCALE
+from mpa_gym.task.contract import OBS_PE as OPE
+from mpa_gym.task.contract import OBS_PF as OPF
+from mpa_gym.task.contract import OBS_SIN as OSIN
+from mpa_gym.task.contract import OBS_V as OV
+from mpa_gym.task.contract import OBS_VREF as OVR
+from mpa_gym.task.contract import OBS_X as OX
+from mpa_gym.task.contract import OBS_XREF as OXR
+
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+MAX_HARMONICS = 5
+
+
+@dataclass(frozen=True)
+class FeatureSpec:
+    """The observation features (``TrackingErrorObservation``'s kwargs; module docstring)."""
+
+    limit_m_s: float = 0.02  # [m s] anti-windup bound of the integrals
+    harmonics: int = 0  # harmonic integral pairs
+    previous_action: bool = False  # append the action the env was last given
+    mask_pressures: bool = False  # zero the measured pressures
+    fine_error_m: float | None = None  # [m] also append clip(X̂ − X, ±this)
+    errors_only: bool = False  # drop the env observation: the features alone
+    remodulate: bool = False  # append each harmonic pair's resonant output and its quadrature
+
+    def __post_init__(self) -> None:
+        lim = self.limit_m_s
+        if isinstance(lim, bool) or not isinstance(lim, int | float) or not 0 < lim <= 1.0:
+            raise ValueError(f"limit_m_s={lim!r} must be a number in (0, 1] m s")
+        h = self.harmonics
+        if isinstance(h, bool) or not isinstance(h, int) or not 0 <= h <= MAX_HARMONICS:
+            raise ValueError(f"harmonics={h!r} must be a whole number in [0, {MAX_HARMONICS}]")
+        for name in ("previous_action", "mask_pressures", "errors_only", "remodulate"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}={getattr(self, name)!r} must be true or false")
+        f = self.fine_error_m
+        if f is not None and (isinstance(f, bool) or not isinstance(f, int | float) or
+                              not 0 < f <= 0.1):
+            raise ValueError(f"fine_error_m={f!r} must be null or a number in (0, 0.1] m")
+        if self.remodulate and not self.harmonics:
+            raise ValueError("remodulate=True needs harmonics >= 1 (it remodulates their "
+                             "integrals)")
+
+    @property
+    def n_integrals(self) -> int:
+        """Number of integral features: I_0 and one (sin, cos) pair per harmonic."""
+        return 1 + 2 * self.harmonics
+
+    def space(self, space: spaces.Box) -> spaces.Box:
+        """The observation space with the features appended, in ``observe_row``'s order."""
+        m, lim = self.n_integrals, self.limit_m_s
+        lo = [-1.0, -20.0] + [-lim] * m + [-1.0] * (2 * self.previous_action)
+        hi = [1.0, 20.0] + [lim] * m + [1.0] * (2 * self.previous_action)
+        if self.fine_error_m is not None:
+            lo.append(-self.fine_error_m)
+            hi.append(self.fine_error_m)
+        if self.remodulate:
+            bound = np.sqrt(2) * lim * (1 + 1e-6)  # |R|, |Q| ≤ |(I_s, I_c)|; float32 rounding
+            lo += [-bound] * (2 * self.harmonics)
+            hi += [bound] * (2 * self.harmonics)
+        base_lo, base_hi = (([], []) if self.errors_only else (space.low, space.high))
+        return spaces.Box(np.concatenate([base_lo, lo]).astype(np.float32),
+                          np.concatenate([base_hi, hi]).astype(np.float32), dtype=np.float32)
+
+
+# The stiffness estimator (ActionSpec.stiffness_adapt_s; module docs)
+ADAPT_MAX_S = 60.0  # [s] its longest time constant: twenty reference periods, two episodes
+ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a start's or a
+#                       kick's transient says nothing about the plant's stiffness
+ADAPT_VAR_M2 = 1e-5  # [m²] regulariser of X̂'s variance, (3.2 mm)², a twentieth of the 20 mm
+#                      reference's A²/2: a reference that barely moves gives no estimate
+
+
+def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
+    """``stiffness_adapt_s`` checked: None (no estimator) or a time constant in
+    (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``)."""
+    if tau is None:
+        return None
+    tau = check_range("stiffness_adapt_s", tau, 0.0, ADAPT_MAX_S, low_open=True, unit="s",
+                      note="or null: no estimator")
+    if not force_stiffness:
+        raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
+                         "the stiffness coordinate of ForceStiffnessAction)")
+    return tau
+
+
+@dataclass(frozen=True)
+class ActionSpec:
+    """The action map (``ForceStiffnessAction``'s kwargs; module docstring)."""
+
+    force_N: float = 20.0  # [N] ground-force correction ΔF at a_F = ±1
+    stiffness_rel: float = 0.3  # [-] stiffness correction Δk at a_k = ±1, as a share of k̂
+    rate_penalty: float = 0.0  # weight of |a_t − a_{t−1}|² taken off the training reward
+    # [s] time constant of the stiffness estimator whose a_k replaces the policy's (module
+    # docs); None: the policy's own a_k
+    stiffness_adapt_s: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "stiffness_adapt_s",
+                           adapt_time_constant(self.stiffness_adapt_s))
+        for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
+                             ("rate_penalty", 0.0, 100.0)):
+            value = getattr(self, name)
+            ok = isinstance(value, int | float) and not isinstance(value, bool) and \
+                (lo <= value if lo is not None else 0 < value) and value <= hi
+            if not ok:
+                interval = f"[{lo:g}, {hi:g}]" if lo is not None else f"(0, {hi:g}]"
+                raise ValueError(f"{name}={value!r} must be a number in {interval}")
+            object.__setattr__(self, name, float(value))
+
+
+# One episode's state of a controller's front-end: a typed record, one per row (env, policy
+# instance). An episode starts from the zero record (``np.zeros(n, STATE)``; ``observe_row``
+# restarts it at an episode's first observation).
+STATE = np.dtype([
+    ("integ", np.float64, (1 + 2 * MAX_HARMONICS,)),  # [m s] I_0, I_s1, I_c1, I_s2, …: the
+    #                                                   first FeatureSpec.n_integrals are used
+    ("prev", np.float64, (2,)),  # the action the env was last given, clipped to [−1, 1]
+    # the stiffness estimator (module docstring), all low-passed with time constant τ:
+    ("est_x_ref_m", np.float64),  # [m] mean of X̂
+    ("est_force_N", np.float64),  # [N] mean of the applied ΔF
+    ("est_cov_N_m", np.float64),  # [N m] covariance c of ΔF and X̂
+    ("est_var_m2", np.float64),  # [m²] variance v of X̂
+    ("est_slope_N_per_m", np.float64),  # [N/m] c / (v + v₀), clipped to ±stiffness_rel k̂
+    ("est_applied_N", np.float64),  # [N] the ΔF applied last step, paired with the next X̂
+    ("est_started", np.bool_),  # the estimator has had its first observation
+])
+
+# A front-end's settings as the kernels read them, by name: the fields of FeatureSpec and
+# ActionSpec (an optional one as a flag and its value) and the control period.
+SETTINGS = np.dtype([
+    ("features", np.bool_),  # append FeatureSpec's features; else the observation as it is
+    ("limit_m_s", np.float64),
+    ("harmonics", np.int64),
+    ("previous_action", np.bool_),
+    ("mask_pressures", np.bool_),
+    ("fine_error", np.bool_),  # fine_error_m is not None
+    ("fine_error_m", np.float64),
+    ("errors_only", np.bool_),
+    ("remodulate", np.bool_),
+    ("force_stiffness", np.bool_),  # map (a_F, a_k) by ActionSpec; else the action as it is
+    ("force_N", np.float64),
+    ("stiffness_rel", np.float64),
+    ("residual_scale_Pa", np.float64),  # [Pa] the residual env's pressure at action ±1
+    ("adapt", np.bool_),  # stiffness_adapt_s is not None
+    ("stiffness_adapt_s", np.float64),
+    ("dt_s", np.float64),  # [s] the control period: the integrals' and the estimator's step
+])
+
+
+def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s: float,
+                  residual_scale_bar: float | None = None) -> np.ndarray:
+    """The ``SETTINGS`` record (an array of one) of a front-end; ``residual_scale_bar`` is the
+    residual env's scale, needed with ``action``."""
+    rec = np.zeros(1, SETTINGS)
+    r = rec[0]
+    r["dt_s"] = check_range("dt_s", dt_s, 0.0, low_open=True, unit="s")
+    if features is not None:
+        r["features"] = True
+        for name in ("limit_m_s", "harmonics", "previous_action", "mask_pressures",
+                     "errors_only", "remodulate"):
+            r[name] = getattr(features, name)
+        r["fine_error"] = features.fine_error_m is not None
+        r["fine_error_m"] = features.fine_error_m or 0.0
+    if action is not None:
+        if residual_scale_bar is None:
+            raise ValueError("a force–stiffness action map needs residual_scale_bar (the "
+                             "residual env's scale)")
+        r["force_stiffness"] = True
+        r["force_N"], r["stiffness_rel"] = action.force_N, action.stiffness_rel
+        r["residual_scale_Pa"] = check_range("residual_scale_bar", residual_scale_bar, 0.0,
+                                             low_open=True, unit="bar") * BAR
+        r["adapt"] = action.stiffness_adapt_s is not None
+        r["stiffness_adapt_s"] = action.stiffness_adapt_s or 0.0
+    return rec
+
+
+@numba.njit(**JIT)
+def restart_row(st):
+    """The zero record: an episode's start (every field of ``STATE``)."""
+    for i in range(st.integ.shape[0]):
+        st.integ[i] = 0.0
+    st.prev[0] = 0.0
+    st.prev[1] = 0.0
+    st.est_x_ref_m = 0.0
+    st.est_force_N = 0.0
+    st.est_cov_N_m = 0.0
+    st.est_var_m2 = 0.0
+    st.est_slope_N_per_m = 0.0
+    st.est_applied_N = 0.0
+    st.est_started = False
+
+
+@numba.njit(**JIT)
+def observe_row(raw, st, fresh, cfg, feat):
+    """The features of one observation ``raw`` (the env's own) into ``feat``; returns their
+    number. ``fresh``: an episode's first observation (the record restarts, the integrals stay
+    zero); else the integrals take this observation's step. Without ``cfg.features``, ``feat``
+    is the observation itself.
+
+    Features: [observation (pressures zeroed if mask_pressures; left out if errors_only),
+    X̂ − X, V̂ − V, I_0, (I_s1, I_c1), …, (a_prev), (fine error), (R_1…R_h, Q_1…Q_h if
+    remodulate)], h = 1 … harmonics; the harmonic basis sin hφ, cos hφ by the complex
+    recurrence z ← z (cos φ + i sin φ) from the observed phase."""
+    if fresh:
+        restart_row(st)
+    if not cfg.features:
+        for i in range(raw.shape[0]):
+            feat[i] = raw[i]
+        return raw.shape[0]
+    h_max, lim = cfg.harmonics, cfg.limit_m_s
+    m = 1 + 2 * h_max
+    e = raw[OXR] - raw[OX]
+    s1, c1 = raw[OSIN], raw[OCOS]
+    if not fresh:  # I ← clip(I + e · basis(φ) · dt, ±limit)
+        dt = cfg.dt_s
+        st.integ[0] = min(max(st.integ[0] + e * 1.0 * dt, -lim), lim)
+        zr, zi = 1.0, 0.0
+        for h in range(h_max):
+            zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
+            st.integ[1 + 2 * h] = min(max(st.integ[1 + 2 * h] + e * zi * dt, -lim), lim)
+            st.integ[2 + 2 * h] = min(max(st.integ[2 + 2 * h] + e * zr * dt, -lim), lim)
+    n = 0
+    if not cfg.errors_only:
+        for i in range(raw.shape[0]):
+            feat[n] = 0.0 if (cfg.mask_pressures and (i == OPE or i == OPF)) else raw[i]
+            n += 1
+    feat[n] = e
+    feat[n + 1] = raw[OVR] - raw[OV]
+    n += 2
+    for i in range(m):
+        feat[n] = st.integ[i]
+        n += 1
+    if cfg.previous_action:
+        feat[n] = st.prev[0]
+        feat[n + 1] = st.prev[1]
+        n += 2
+    if cfg.fine_error:
+        feat[n] = min(max(e, -cfg.fine_error_m), cfg.fine_error_m)
+        n += 1
+    if cfg.remodulate:  # R_h = I_sh sin hφ + I_ch cos hφ, Q_h = I_sh cos hφ − I_ch sin hφ
+        zr, zi = 1.0, 0.0
+        for h in range(h_max):
+            zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
+            i_s, i_c = st.integ[1 + 2 * h], st.integ[2 + 2 * h]
+            feat[n + h] = i_s * zi + i_c * zr
+            feat[n + h_max + h] = i_s * zr - i_c * zi
+        n += 2 * h_max
+    return n
+
+
+@numba.njit(**JIT)
+def estimate_row(st, x_ref, e, k_ref, a_F, cfg):
+    """One step of the stiffness estimator (module docstring) at reference X̂ = ``x_ref``
+    [m], tracking error ``e`` [m] and k̂ = ``k_ref`` [N/m], its record fields updated → â_k;
+    then the force correction ``a_F`` applied this step, which the next update pairs with the
+    next X̂."""
+    if not st.est_started:
+        st.est_force_N = 0.0
+        st.est_cov_N_m = 0.0
+        st.est_var_m2 = 0.0
+        st.est_slope_N_per_m = 0.0
+        st.est_applied_N = 0.0
+        st.est_x_ref_m, st.est_started = x_ref, True
+    al = cfg.dt_s / cfg.stiffness_adapt_s / (1.0 + (e / ADAPT_ERROR_M) ** 2)
+    st.est_x_ref_m += al * (x_ref - st.est_x_ref_m)
+    st.est_force_N += al * (st.est_applied_N - st.est_force_N)
+    dx, dF = x_ref - st.est_x_ref_m, st.est_applied_N - st.est_force_N
+    st.est_cov_N_m += al * (dF * dx - st.est_cov_N_m)
+    st.est_var_m2 += al * (dx * dx - st.est_var_m2)
+    span = cfg.stiffness_rel * abs(k_ref)
+    a_k = 0.0
+    if span > 0.0:
+        slope = min(max(st.est_cov_N_m / (st.est_var_m2 + ADAPT_VAR_M2), -span), span)
+        st.est_slope_N_per_m += al * (slope - st.est_slope_N_per_m)
+        a_k = min(max(-st.est_slope_N_per_m / span, -1.0), 1.0)
+    st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
+    return a_k
+
+
+@numba.njit(**JIT)
+def force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out):
+    """(a_F, a_k) → the residual action (a_e, a_f) into ``out``: solves J(X̂) ΔP = (a_F ·
+    force_N, a_k · stiffness_rel · k̂) on the nominal model (constants ``c``, ``fast.pack``)
+    at X̂ = ``x_ref`` (noise-free, and where the feedforward holds the leg), V = 0, with J the
+    pressure coefficients of F and k (``design.affine_in_pressures``: three evaluations, both
+    being affine in each pressure); ΔP / residual scale, clipped to [−1, 1], rounded to the
+    action space's float32."""
+    F0, k0 = fast.force_and_stiffness(x_ref, 0.0, 0.0, 0.0, c)
+    Fe, ke = fast.force_and_stiffness(x_ref, 0.0, BAR, 0.0, c)
+    Ff, kf = fast.force_and_stiffness(x_ref, 0.0, 0.0, BAR, c)
+    j11, j12, j21, j22 = (Fe - F0) / BAR, (Ff - F0) / BAR, (ke - k0) / BAR, (kf - k0) / BAR
+    dF = min(max(a_F, -1.0), 1.0) * cfg.force_N
+    dk = min(max(a_k, -1.0), 1.0) * cfg.stiffness_rel * k_ref
+    det = j11 * j22 - j12 * j21
+    scale = cfg.residual_scale_Pa
+    out[0] = np.float32(min(max((dF * j22 - j12 * dk) / det / scale, -1.0), 1.0))
+    out[1] = np.float32(min(max((j11 * dk - j21 * dF) / det / scale, -1.0), 1.0))
+
+
+@numba.njit(**JIT)
+def act_row(a, raw, st, cfg, c, out):
+    """The env's action for the policy's action ``a`` at observation ``raw`` (the env's own)
+    into ``out``: with ``cfg.force_stiffness``, a = (a_F, a_k), a_k replaced by the stiffness
+    estimator's if ``cfg.adapt``, mapped by ``force_stiffness_row``; else ``a`` itself. The
+    record keeps it (clipped, as the env applies it) as the next features' a_prev."""
+    if cfg.force_stiffness:
+        x_ref = np.float64(raw[OXR])
+        k_ref = np.float64(raw[OK]) * OBS_KREF_SCALE
+        a_F, a_k = np.float64(a[0]), np.float64(a[1])
+        if cfg.adapt:
+            a_k = estimate_row(st, x_ref, x_ref - np.float64(raw[OX]), k_ref, a_F, cfg)
+        force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out)
+    else:
+        out[0] = a[0]
+        out[1] = a[1]
+    st.prev[0] = min(max(out[0], -1.0), 1.0)
+    st.prev[1] = min(max(out[1], -1.0), 1.0)
+
+
+@numba.njit(**JIT)
+def _observe_rows(raw, state, fresh, cfg, feat):
+    for i in range(raw.shape[0]):
+        observe_row(raw[i], state[i], fresh[i], cfg[0], feat[i])
+
+
+@numba.njit(**JIT)
+def _act_rows(a, raw, state, cfg, c, out):
+    for i in range(a.shape[0]):
+        act_row(a[i], raw[i], state[i], cfg[0], c, out[i])
+
+
+@numba.njit(**JIT)
+def _estimate_rows(a_F, raw, state, cfg, out):
+    for i in range(a_F.shape[0]):
+        x_ref = np.float64(raw[i, OXR])
+        out[i] = estimate_row(state[i], x_ref, x_ref - np.float64(raw[i, OX]),
+                              np.float64(raw[i, OK]) * OBS_KREF_SCALE, a_F[i], cfg[0])
+
+
+@functools.lru_cache(maxsize=8)
+def constants(params: Params) -> np.ndarray:
+    """The compiled model's constants of ``params`` (``fast.pack``), packed once."""
+    return fast.pack(params)
+
+
+class Frontend:
+    """A controller's front-end (features ``features``, action map ``action``, control period
+    ``dt_s``) over batches of rows: the row kernels looped, for the Python callers. The state
+    is theirs: an array of ``STATE`` records, one per row (``new_state``).
+
+    ``Frontend.of`` builds one from a policy's arguments."""
+
+    def __init__(self, features: FeatureSpec | None, action: ActionSpec | None, dt_s: float,
+                 residual_scale_bar: float | None = None, params: Params = DEFAULT_PARAMS
+                 ) -> None:
+        self.features, self.action, self.dt = features, action, float(dt_s)
+        self.settings = pack_settings(features, action, dt_s, residual_scale_bar)
+        self.consts = constants(params)
+
+    @classmethod
+    def of(cls, features: FeatureSpec | None, dt_s: float,
+           force_stiffness: tuple[float, float, float] | None,
+           stiffness_adapt_s: float | None = None, params: Params = DEFAULT_PARAMS
+           ) -> Frontend:
+        """From a policy's arguments: ``force_stiffness`` = (force_N, stiffness_rel, residual
+        scale [bar]) or None, ``stiffness_adapt_s`` only with it."""
+        tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
+        if force_stiffness is None:
+            return cls(features, None, dt_s, None, params)
+        force_N, stiffness_rel, scale_bar = force_stiffness
+        return cls(features, ActionSpec(force_N=force_N, stiffness_rel=stiffness_rel,
+                                        stiffness_adapt_s=tau), dt_s, scale_bar, params)
+
+    def width(self, obs_dim: int) -> int:
+        """Number of features of an observation with ``obs_dim`` columns."""
+        return _width(self.features, obs_dim)
+
+    def observe(self, raw: np.ndarray, state: np.ndarray, fresh: np.ndarray | bool
+                ) -> np.ndarray:
+        """(n, d) observations → (n, ``width(d)``) float32 features (``observe_row``), the
+        records ``state`` (n,) updated in place; ``fresh`` (n,) or one flag for all."""
+        raw = np.ascontiguousarray(raw, dtype=np.float32).reshape(len(state), -1)
+        fresh = np.broadcast_to(np.asarray(fresh, dtype=np.bool_), (len(state),))
+        feat = np.empty((len(state), self.width(raw.shape[1])), dtype=np.float32)
+        _observe_rows(raw, state, np.ascontiguousarray(fresh), self.settings, feat)
+        return feat
+
+    def act(self, action: np.ndarray, raw: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """(n, 2) policy actions at the observations ``raw`` (n, d) → the env's actions (n, 2)
+        in float32 (``act_row``), the records ``state`` updated in place."""
+        a = np.ascontiguousarray(action, dtype=np.float64).reshape(len(state), 2)
+        raw = np.ascontiguousarray(raw, dtype=np.float32).reshape(len(state), -1)
+        out = np.empty((len(state), 2))
+        _act_rows(a, raw, state, self.settings, self.consts, out)
+        return out.astype(np.float32)
+
+    def estimate(self, a_F: np.ndarray, raw: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """(n,) â_k of the stiffness estimator (``estimate_row``) after this step's update at
+        the observations ``raw``, the force corrections ``a_F`` then recorded as applied."""
+        if not self.settings[0]["adapt"]:
+            raise ValueError("this front-end has no stiffness estimator (stiffness_adapt_s)")
+        a_F = np.ascontiguousarray(a_F, dtype=np.float64).reshape(len(state))
+        raw = np.ascontiguousarray(raw, dtype=np.float32).reshape(len(state), -1)
+        out = np.empty(len(state))
+        _estimate_rows(a_F, raw, state, self.settings, out)
+        return out
+
+
+@functools.lru_cache(maxsize=64)
+def _width(features: FeatureSpec | None, obs_dim: int) -> int:
+    """``Frontend.width``, once per spec (the space's length: one layout)."""
+    if features is None:
+        return obs_dim
+    return features.space(spaces.Box(-np.inf, np.inf, (obs_dim,))).shape[0]
+
+
+def new_state(n: int) -> np.ndarray:
+    """``n`` records at an episode's start."""
+    return np.zeros(n, STATE)
