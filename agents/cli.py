@@ -589,8 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
             "failed)", cmd_tune_baselines, show_tune_baselines)
     p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
     p.add_argument("--config", default=None, metavar="YAML",
-                   help="PPO config whose training scenario gives the plants "
-                        "(default: the default PPO config, mpa_gym.agents.learned.config.DEFAULT_CONFIG)")
+                   help="PPO config whose training scenario gives the plants (default: the "
+                        "default PPO config, mpa_gym.agents.learned.config.DEFAULT_CONFIG)")
     p.add_argument("--n-trials", type=int, default=80, metavar="N", help="Optuna trials each")
     p.add_argument("--n-plants", type=int, default=16, metavar="N",
                    help="plants drawn from the training ranges (each adds its undamped twin)")

@@ -192,13 +192,16 @@ def test_resume_continues_the_step_count(tmp_path):
      ({"policy_kwargs": "dict(net_arch=__import__('os'))"}, r"only literals"),
      ({"batch_size": 10_000}, r"batch_size=10000 must be <= n_steps \* n_envs"),
      ({"env_wrapper": "os.system"}, r"env_wrapper='os.system': allowed"),
-     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonic": 1}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation":
+                        {"harmonic": 1}}]},
       r"TrackingErrorObservation: unknown key\(s\) \['harmonic'\]"),
-     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonics": 9}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation":
+                        {"harmonics": 9}}]},
       r"harmonics=9 must be a whole number in \[0, 5\]"),
      ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.ForceStiffnessAction": {"force_N": 0}}]},
       r"ForceStiffnessAction: force_N=0 must be a number in \(0, 200\]"),
-     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.ForceStiffnessAction": {"rate_penalty": "big"}}]},
+     ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.ForceStiffnessAction":
+                        {"rate_penalty": "big"}}]},
       r"ForceStiffnessAction: rate_penalty='big' must be a number in \[0, 100\]"),
      ({"env_wrapper": ["mpa_gym.agents.learned.wrappers.ForceStiffnessAction",
                        "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"]}, "given twice"),
@@ -222,7 +225,8 @@ def test_config_structure_errors():
     assert cfg.env_id == "MPALeg-v0" and cfg.policy_kwargs["net_arch"] == [64, 64]
     with pytest.raises(ConfigError, match="ForceStiffnessAction needs MPALegResidual-v0"):
         parse_config({"MPALeg-v0": {"policy": "MlpPolicy", "n_timesteps": 10,
-                                    "env_wrapper": "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"}})
+                                    "env_wrapper":
+                                        "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"}})
 
 
 def test_report_files(tmp_path):

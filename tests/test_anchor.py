@@ -1,4 +1,5 @@
-"""The rest-anchored residual policy (agents/learned/anchor.py): zero mean action at zero features."""
+"""The rest-anchored residual policy (agents/learned/anchor.py): zero mean action at zero
+features."""
 
 from __future__ import annotations
 

@@ -100,8 +100,8 @@ def test_emulate_stops_on_sigterm_with_the_documented_exit_code():
     import re
     import signal
 
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--port",
-                             "0", "--duration", "60", "--json"],
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp",
+                             "--port", "0", "--duration", "60", "--json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert re.search(r"udp://\S+", proc.stderr.readline())
     proc.send_signal(signal.SIGTERM)

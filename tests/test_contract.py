@@ -30,8 +30,8 @@ def emulator_url():
     """A device emulator in another process (the CLI's), on a UDP loopback port."""
     # the device's watchdog relaxed to 0.5 s, as in the other rig tests: a stall of the loaded
     # test machine must not vent the leg (these tests check the layout, not the timing)
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--port",
-                             "0", "--duration", "60", "--watchdog", "0.5"],
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp",
+                             "--port", "0", "--duration", "60", "--watchdog", "0.5"],
                             stderr=subprocess.PIPE, text=True)
     try:
         line = proc.stderr.readline()

@@ -202,8 +202,9 @@ def test_unreachable_device_says_what_to_check(tmp_path):
 
 def test_killed_rollout_leaves_a_readable_log(tmp_path):
     log = tmp_path / "rollout.jsonl"
-    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "rollout", "--policy", "pid",
-                             "--dry-run", "--episode-s", "20", "--log", str(log)],
+    proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "rollout",
+                             "--policy", "pid", "--dry-run", "--episode-s", "20",
+                             "--log", str(log)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 30
     while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 20_000):

@@ -116,8 +116,9 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
 @REALTIME
 def test_identify_cli_json_and_bad_input(rig_log, tmp_path):
     out = tmp_path / "cli.yaml"
-    p = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "identify", "--log", str(rig_log),
-                        "--out", str(out), "--json"], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "identify",
+                        "--log", str(rig_log), "--out", str(out), "--json"],
+                       capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     o = json.loads(p.stdout)
     assert {"plant", "uncertainty", "validation_rmse_m", "scenario_yaml"} <= set(o)

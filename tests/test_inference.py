@@ -1,8 +1,8 @@
 """The deployed (compiled) inference path against SB3's deterministic action.
 
-Both paths call the same front-end kernels (``mpa_gym.agents.learned.frontend``: features, action map, episode
-record; tested against independent references in ``tests/test_wrappers.py``), so what they can
-disagree on is their own part, the normaliser and the network: that is checked option by
+Both paths call the same front-end kernels (``mpa_gym.agents.learned.frontend``: features, action
+map, episode record; tested against independent references in ``tests/test_wrappers.py``), so what
+they can disagree on is their own part, the normaliser and the network: that is checked option by
 option. One trained run checks the whole path end to end (the front-end wired in the same
 order around the network)."""
 
@@ -169,7 +169,8 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
 
 def test_both_policies_check_the_estimator_setting():
     # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
-    # the training wrapper refuses it (one check: mpa_gym.agents.learned.frontend.adapt_time_constant)
+    # the training wrapper refuses it (one check:
+    # mpa_gym.agents.learned.frontend.adapt_time_constant)
     fs = (20.0, 0.3, 1.0)
     layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
     makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),

@@ -2,9 +2,9 @@
 
 Each case must give the documented exit code (2: bad input) or ``ValueError``, no traceback, and
 a message that names the field and the value, before any work is done (no output files, no run
-folder). Most CLI cases call ``mpa_gym.agents.cli.main`` in this process (an uncaught exception fails
-the case, as a traceback would); a sample runs as real processes to check the exit code and that
-stderr holds no traceback.
+folder). Most CLI cases call ``mpa_gym.agents.cli.main`` in this process (an uncaught exception
+fails the case, as a traceback would); a sample runs as real processes to check the exit code and
+that stderr holds no traceback.
 """
 
 from __future__ import annotations
@@ -181,7 +181,8 @@ CONFIGS = [
     ({"env_kwargs": {"task": {"dt_s": "0.01"}}}, ["dt_s", "'0.01'"]),
     ({"env_kwargs": {"scenario": 5}}, ["scenario", "5"]),
     ({"env_kwargs": {"task": "fast"}}, ["task", "fast"]),
-    ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation": {"harmonics": -1}}]},
+    ({"env_wrapper": [{"mpa_gym.agents.learned.wrappers.TrackingErrorObservation":
+                       {"harmonics": -1}}]},
      ["harmonics", "-1"]),
 ]
 HARNESS = [
@@ -305,8 +306,8 @@ def test_bad_input_as_a_process_exits_2_without_traceback(files):
     for i in PROCESS_SAMPLE:
         argv, want, _ = CASES[i]
         procs.append((argv, want, subprocess.Popen(
-            [sys.executable, "-m", "mpa_gym.agents.cli", *_argv(argv, files)], stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE, text=True, cwd=ROOT)))
+            [sys.executable, "-m", "mpa_gym.agents.cli", *_argv(argv, files)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)))
     for argv, want, proc in procs:
         _, err = proc.communicate(timeout=120)
         assert proc.returncode == 2, (argv, err)

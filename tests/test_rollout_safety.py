@@ -79,8 +79,8 @@ def test_a_safety_stop_is_logged_printed_and_exits_3(tmp_path, capsys, monkeypat
 def test_ctrl_c_and_sigterm_print_one_line_vent_and_log_the_reason(tmp_path, sig):
     # the device's watchdog is relaxed to 1 s so that a scheduling hiccup of the shared test
     # machine does not fire it; after the signal it would fire within 1 s unless the PC vented
-    emu = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--json",
-                            "--watchdog", "1.0"],
+    emu = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp",
+                            "--json", "--watchdog", "1.0"],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                            preexec_fn=default_sigint)
     url = re.search(r"udp://\S+", emu.stderr.readline()).group(0)

@@ -1,5 +1,6 @@
-"""Run-time assurance (mpa_gym.agents.controllers.supervisor): the fallback rescues a residual that destabilises
-the plant, never drives a healthy loop, and the config names what is wrong with a bad spec."""
+"""Run-time assurance (mpa_gym.agents.controllers.supervisor): the fallback rescues a residual that
+destabilises the plant, never drives a healthy loop, and the config names what is wrong with a bad
+spec."""
 
 from __future__ import annotations
 
@@ -772,7 +773,8 @@ def test_cascade_hands_to_the_fallback_then_the_last_resort_after_its_grace():
         np.testing.assert_array_equal(a[:, 0], np.array([0.5, 1.0, 0.0])[stages[j]])
 
 
-# --- the reference: agents/controllers/supervisor.py as of d227f9f, before the cascade was declared ---
+# --- the reference: agents/controllers/supervisor.py as of d227f9f, before the cascade was
+# declared ---
 # Copied verbatim (its names prefixed Ref / REF_, the contract columns aliased) so that the
 # equivalence test needs nothing outside this repository. Do not edit: it is the yardstick.
 OX, OXR = OBS_X, OBS_XREF

@@ -338,9 +338,9 @@ def test_a_killed_workers_trial_is_marked_failed_and_the_study_resumes(tmp_path)
     cfg = tiny_tune_config(tmp_path / "c.yaml")
     held = short_heldout(tmp_path / "h.yaml")
     db = f"sqlite:///{tmp_path}/s.db"
-    base = [sys.executable, "-m", "mpa_gym.agents.cli", "tune", "--config", str(cfg), "--storage", db,
-            "--study-name", "k", "--heartbeat", "1", "--heldout", str(held), "--out-dir",
-            str(tmp_path / "runs")]
+    base = [sys.executable, "-m", "mpa_gym.agents.cli", "tune", "--config", str(cfg),
+            "--storage", db, "--study-name", "k", "--heartbeat", "1", "--heldout", str(held),
+            "--out-dir", str(tmp_path / "runs")]
     env = {**os.environ, "MPLBACKEND": "Agg"}
     kw = {"heartbeat_s": 1, "heldout": [str(held)], "out_dir": tmp_path / "runs"}
     tune(cfg, db, "k", n_trials=1, **kw)

@@ -21,15 +21,16 @@ true plant).
   where the regulator's dead time is a small phase (40 ms is 4.8° at 1/3 Hz): the averaged
   loop is stable while the plant's phase at ω₀ stays within ±90°, a delay margin of ~0.75 s,
   where pid's and mbfb's bandwidth limits them to ~30 ms. It is the supervisor's last resort
-  (``mpa_gym.agents.controllers.supervisor``), not a tracking controller: it is slow and knows only ω₀.
+  (``mpa_gym.agents.controllers.supervisor``), not a tracking controller: it is slow and knows
+  only ω₀.
 
 Both PID laws are what a control engineer would field: the derivative acts on the measured
 velocity error through a first-order low-pass filter (time constant ``tf_s``; 0: unfiltered), and
 the integrator is clamped against windup (conditional integration: while the last output was
 saturated — the residual clip or the pressure limits — the integrator does not integrate an
 error that pushes further into the saturation). Their gains are tuned by
-``mpa_gym.agents.training.tune_baselines`` (Optuna TPE) on the training plants of the PPO config; ``TUNED_ON``
-says on what and with which budget, and the evaluation report repeats it.
+``mpa_gym.agents.training.tune_baselines`` (Optuna TPE) on the training plants of the PPO config;
+``TUNED_ON`` says on what and with which budget, and the evaluation report repeats it.
 """
 
 from __future__ import annotations
@@ -228,8 +229,8 @@ class PIDResidual(_PlanPolicy):
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
                   rows: np.ndarray) -> np.ndarray:
         """The state from which this controller continues the residual ``held`` (n, 2) on
-        ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator gives the
-        antagonistic part u = (a_e − a_f) / 2 of the held command, the derivative filter
+        ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator
+        gives the antagonistic part u = (a_e − a_f) / 2 of the held command, the derivative filter
         starts at the measured error rate; other rows keep ``state``. The common part of the
         command (a stiffness change) has no place in this controller and is dropped."""
         return self._hold(observation, state, rows, 0.5 * (held[:, 0] - held[:, 1])
@@ -337,9 +338,9 @@ class StiffnessFeedback(_PlanPolicy):
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
                   rows: np.ndarray) -> np.ndarray:
         """The state from which this controller continues the residual ``held`` (n, 2) on
-        ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator gives the force
-        correction that the held pressures (feedforward + residual) make, on the nominal model
-        at the measured state, beyond m (dV̂/dt + g); other rows keep ``state``."""
+        ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator
+        gives the force correction that the held pressures (feedforward + residual) make, on the
+        nominal model at the measured state, beyond m (dV̂/dt + g); other rows keep ``state``."""
         obs = np.asarray(observation, dtype=np.float64).reshape(len(rows), -1)
         pressures = self._feedforward(obs) + held * self.cfg.residual_scale_bar * BAR
         with np.errstate(invalid="ignore"):

@@ -21,9 +21,9 @@ began; it trips when √z passes ``level_mm``.
 - ``LimitCycle``, s = e_t − e_{t−T}, T the reference period: an oscillation that does not
   repeat with the reference. A stable loop settles onto a motion of period T (a sag under a
   load, a phase lag), which cancels in the difference; an aperiodic part of RMS ρ gives
-  ≈ √2 ρ. It is the robustness sweep's "unstable" criterion (``mpa_gym.agents.evaluation.robustness``) made
-  causal, armed after two periods so that it does not compare the settled loop with its
-  start-up transient.
+  ≈ √2 ρ. It is the robustness sweep's "unstable" criterion
+  (``mpa_gym.agents.evaluation.robustness``) made causal, armed after two periods so that it does
+  not compare the settled loop with its start-up transient.
 - ``Persistent``, s = e: a periodic error of several mm, which the limit cycle cannot see (its
   change over a period is zero) and which stays under the divergence level.
 
@@ -185,7 +185,8 @@ class Stage:
     """One place in the cascade: who drives, which monitors judge its loop (the first to trip
     hands the row to the next stage) and how long its loop has to settle before they do."""
 
-    controller: str  # "policy", or the mpa_gym.agents.controllers.baselines name of a fallback / last resort
+    # "policy", or the mpa_gym.agents.controllers.baselines name of a fallback / last resort
+    controller: str
     monitors: tuple[str, ...] = ()  # names of the spec's monitors; none: it drives to the end
     grace_periods: int = 0  # reference periods from its start before its loop is judged
 
@@ -424,8 +425,8 @@ class SupervisedState(NamedTuple):
 
 class Supervised:
     """``policy`` under the cascade of ``spec`` (module docstring); ``fallback`` and ``last``
-    are the controllers of its later stages (``mpa_gym.agents.learned.policies.supervise`` builds them),
-    ``period_s`` the reference's period T, ``dt`` the control period. The last resort must be
+    are the controllers of its later stages (``mpa_gym.agents.learned.policies.supervise`` builds
+    them), ``period_s`` the reference's period T, ``dt`` the control period. The last resort must be
     the controller its stage names (it starts from that controller's rest state)."""
 
     def __init__(self, policy: Policy, fallback: Policy, dt: float, period_s: float,

@@ -11,14 +11,15 @@ window `mpa-gym simulate` uses) unless said otherwise:
 - ``recovery_s``: after the first impulse ends, the time until |X − X̂| stays below 1 mm
   (``None`` without an impulse, ``inf`` if it never does);
 - ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds;
-- ``fallback_s``: for a run under a ``supervisor`` (``mpa_gym.agents.controllers.supervisor``), the time its
-  fallback took over (``None``: it never did, or the controller has no supervisor);
+- ``fallback_s``: for a run under a ``supervisor`` (``mpa_gym.agents.controllers.supervisor``), the
+  time its fallback took over (``None``: it never did, or the controller has no supervisor);
   ``last_resort_s`` the time its last resort did.
 
-With ``robustness=True`` the report also holds the robustness sweep of ``mpa_gym.agents.evaluation.robustness``
-(grids of real-rig effects, easy / medium / hard levels) with its heatmaps. On a machine with a
-second core the sweep runs in a second process while the report's batch runs in this one (both
-are single-threaded and independent; the numbers are the same either way).
+With ``robustness=True`` the report also holds the robustness sweep of
+``mpa_gym.agents.evaluation.robustness`` (grids of real-rig effects, easy / medium / hard levels)
+with its heatmaps. On a machine with a second core the sweep runs in a second process while the
+report's batch runs in this one (both are single-threaded and independent; the numbers are the same
+either way).
 """
 
 from __future__ import annotations
@@ -72,10 +73,11 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
     the robustness sweep if ``robustness``.
 
-    All episodes run as one batch (``mpa_gym.agents.evaluation.episodes.run_episodes``); ``batched=False`` runs
-    them one after another (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers.
-    ``plots_dir``: the scenario plots (:func:`plot`) are drawn there while the sweep's worker
-    finishes, rather than by :func:`write_report` after it (``report["plots"]``)."""
+    All episodes run as one batch (``mpa_gym.agents.evaluation.episodes.run_episodes``);
+    ``batched=False`` runs them one after another
+    (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers. ``plots_dir``: the
+    scenario plots (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
+    :func:`write_report` after it (``report["plots"]``)."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
@@ -149,8 +151,9 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
 
 
 class Background:
-    """A function call running in a spawned worker process (``mpa_gym.agents.worker.Worker``: it ignores
-    Ctrl-C, exits with a SIGKILLed parent, and a dead one fails its call rather than hangs)."""
+    """A function call running in a spawned worker process (``mpa_gym.agents.worker.Worker``: it
+    ignores Ctrl-C, exits with a SIGKILLed parent, and a dead one fails its call rather than
+    hangs)."""
 
     def __init__(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
         from mpa_gym.agents.worker import Worker
@@ -180,8 +183,9 @@ class Background:
 
 
 def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None:
-    """``mpa_gym.agents.evaluation.robustness.robustness(policies, **kwargs)`` started in a second process (a fresh
-    interpreter: the policies load there from their specs), or None on a single core."""
+    """``mpa_gym.agents.evaluation.robustness.robustness(policies, **kwargs)`` started in a second
+    process (a fresh interpreter: the policies load there from their specs), or None on a single
+    core."""
     if len(os.sched_getaffinity(0)) < 2:
         return None
     from mpa_gym.agents.evaluation.robustness import robustness as sweep
@@ -190,9 +194,10 @@ def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None
 
 
 def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, Any]:
-    """The groups of run folders of one config (``mpa_gym.agents.evaluation.seeds.group_runs``): per scenario the
-    IQM of each metric and its 95 % stratified-bootstrap CI over the runs, and the aggregate
-    learning curves (:mod:`mpa_gym.agents.evaluation.seeds`). A lone run of its config is in no group."""
+    """The groups of run folders of one config (``mpa_gym.agents.evaluation.seeds.group_runs``): per
+    scenario the IQM of each metric and its 95 % stratified-bootstrap CI over the runs, and the
+    aggregate learning curves (:mod:`mpa_gym.agents.evaluation.seeds`). A lone run of its config is
+    in no group."""
     from mpa_gym.agents.evaluation.seeds import aggregate, group_label, learning_curves
 
     out: dict[str, Any] = {}

@@ -116,16 +116,17 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
     """One episode of controller ``spec`` (a name, a run folder, or a policy object for
     ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
     each step until the episode ends (NaN after a termination), whether it terminated, and per
-    step whether a supervisor's fallback drove it (``mpa_gym.agents.controllers.supervisor``; never, without one)."""
+    step whether a supervisor's fallback drove it (``mpa_gym.agents.controllers.supervisor``; never,
+    without one)."""
     return run_batches([spec], sc, plants, seed)[0]
 
 
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
                 seed: int) -> list[dict[str, np.ndarray]]:
     """:func:`run_batch` for several controllers at once, each on every plant, as one call of
-    ``mpa_gym.agents.evaluation.episodes.run_episodes``: controllers that run in the same env (id and task
-    settings) share one vector env, a block of legs each, so a step of the sweep is one engine
-    call per env rather than per controller; leg j of every block is reset with seed
+    ``mpa_gym.agents.evaluation.episodes.run_episodes``: controllers that run in the same env (id
+    and task settings) share one vector env, a block of legs each, so a step of the sweep is one
+    engine call per env rather than per controller; leg j of every block is reset with seed
     ``seed + j``, as the single batch seeds it."""
     jobs = []
     for spec in specs:

@@ -49,7 +49,8 @@ PPO_KEYS = {"learning_rate", "n_steps", "batch_size", "n_epochs", "gamma", "gae_
             "max_grad_norm", "use_sde", "sde_sample_freq", "target_kl"}
 HARNESS_KEYS = {"seed", "eval_scenarios", "eval_freq", "checkpoint_freq", "eval_seed",
                 "tune",  # tune: the search space of `mpa-gym tune` (agents/training/tune.py)
-                "supervisor",  # run-time assurance of the trained policy (agents/controllers/supervisor.py)
+                # run-time assurance of the trained policy (agents/controllers/supervisor.py)
+                "supervisor",
                 "anchor_at_rest"}  # mean action zero at zero features (agents/learned/anchor.py)
 ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
 OBS_WRAPPER = "mpa_gym.agents.learned.wrappers.TrackingErrorObservation"
@@ -99,7 +100,8 @@ class TrainConfig:
     # a fallback that takes over from the trained policy when it fails (SupervisorSpec's keys);
     # None: the policy runs alone
     supervisor: Any = None
-    # the policy's mean action is exactly zero while every feature is zero (agents/learned/anchor.py)
+    # the policy's mean action is exactly zero while every feature is zero
+    # (agents/learned/anchor.py)
     anchor_at_rest: bool = False
     raw: dict[str, Any] = field(default_factory=dict)  # the file's content, for the run folder
     source: str = "config"  # where the settings came from (prefixes error messages)
@@ -380,7 +382,8 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
         raise ConfigError(f"{source}: mpa_gym={h!r} must be a mapping with the keys "
                           f"{sorted(HARNESS_KEYS)}")
     check_keys(f"{source}: mpa_gym", h, HARNESS_KEYS, ConfigError)
-    # tune (the search space) is read from ``raw`` by mpa_gym.agents.training.tune, which validates it
+    # tune (the search space) is read from ``raw`` by mpa_gym.agents.training.tune, which
+    # validates it
     harness = {k: v for k, v in h.items() if k not in ("eval_scenarios", "tune")}
     if h.get("eval_scenarios") is not None:
         harness["eval_scenarios"] = h["eval_scenarios"]

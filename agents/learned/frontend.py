@@ -1,9 +1,9 @@
 """The controller front-end of a learned policy: its observation features, its action map and
-its per-episode state, defined once. The training wrappers (``mpa_gym.agents.learned.wrappers``), the loaded
-policy (``mpa_gym.agents.learned.policies.LearnedPolicy``) and the compiled deployed path
-(``mpa_gym.agents.learned.inference.DeployedPolicy``) all call the row kernels below, so what a policy saw in
-training is what it sees when deployed, by construction; only the network and the normaliser
-differ between the paths (SB3's torch in float32, the compiled one in float64).
+its per-episode state, defined once. The training wrappers (``mpa_gym.agents.learned.wrappers``),
+the loaded policy (``mpa_gym.agents.learned.policies.LearnedPolicy``) and the compiled deployed path
+(``mpa_gym.agents.learned.inference.DeployedPolicy``) all call the row kernels below, so what a
+policy saw in training is what it sees when deployed, by construction; only the network and the
+normaliser differ between the paths (SB3's torch in float32, the compiled one in float64).
 
 Structure, in the sim engine's style (``mpa_gym.envs.sim``): compiled kernels over one row —
 ``observe_row`` (features), ``act_row`` (stiffness estimator, force–stiffness map, the

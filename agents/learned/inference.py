@@ -3,13 +3,13 @@
 ``LearnedPolicy.predict`` goes through SB3 and torch: tensors, a thread pool, Python glue, a few
 hundred microseconds and a garbage-producing allocation per step. ``DeployedPolicy`` computes the
 same deterministic action from the exported weights in one compiled (numba) call on buffers
-allocated once: the controller front-end's features (``mpa_gym.agents.learned.frontend.observe_row``, the
-kernel the training wrappers and ``LearnedPolicy`` call), the observation normaliser
-(VecNormalize's running mean and variance, its clip), the policy MLP (SB3's
-``mlp_extractor.policy_net`` then ``action_net``: the mean action, ``deterministic=True``), the
-clip to the action space, and the front-end's action map with its stiffness estimator
-(``mpa_gym.agents.learned.frontend.act_row``). Single threaded, no framework, no allocation per step: what a
-real-time loop can afford.
+allocated once: the controller front-end's features
+(``mpa_gym.agents.learned.frontend.observe_row``, the kernel the training wrappers and
+``LearnedPolicy`` call), the observation normaliser (VecNormalize's running mean and variance, its
+clip), the policy MLP (SB3's ``mlp_extractor.policy_net`` then ``action_net``: the mean action,
+``deterministic=True``), the clip to the action space, and the front-end's action map with its
+stiffness estimator (``mpa_gym.agents.learned.frontend.act_row``). Single threaded, no framework, no
+allocation per step: what a real-time loop can afford.
 
 Only the normaliser and the network are its own; they equal ``LearnedPolicy.predict``'s (SB3's
 deterministic action) to 1e-6 (``tests/test_inference.py``): SB3 computes them in float32,
@@ -84,7 +84,8 @@ def _forward(raw, state, fresh, cfg, consts, mean, inv_std, clip_obs, weights, s
 class DeployedPolicy:
     """A trained run's deterministic action through the compiled path (module docstring).
 
-    Build it with :meth:`from_learned` (``mpa_gym.agents.learned.policies.load_run(..., deployed=True)`` does).
+    Build it with :meth:`from_learned`
+    (``mpa_gym.agents.learned.policies.load_run(..., deployed=True)`` does).
     ``act(obs, episode_start)`` returns the action in a buffer that the next call overwrites;
     ``predict`` is the baselines' interface for one observation (the state lives inside the
     policy, so one instance serves one episode at a time).
@@ -225,8 +226,8 @@ def benchmark(run_dir: str, n_actions: int = 20_000, n_reference: int = 2_000,
 
     import gymnasium as gym
 
-    # mpa_gym.agents.learned.policies imports this module (load_run's deployed path): the benchmark, which
-    # loads runs, belongs above both, where the CLI would import it from
+    # mpa_gym.agents.learned.policies imports this module (load_run's deployed path): the benchmark,
+    # which loads runs, belongs above both, where the CLI would import it from
     from mpa_gym.agents.learned.policies import load_run
 
     from mpa_gym.hardware import protocol as proto

@@ -104,9 +104,9 @@ def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
     """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
 
-    ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference`` (for the rig's
-    real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded once
-    per process for as long as the run's files are unchanged (a report loads a run for every
+    ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference`` (for
+    the rig's real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded
+    once per process for as long as the run's files are unchanged (a report loads a run for every
     batch it runs; ``LearnedPolicy`` keeps no state of its own, so they can share it)."""
     run = Path(run_dir)
     files = (("config.yaml", "model.zip", "vecnormalize.pkl") if which == "final" else
@@ -203,7 +203,8 @@ class SavedModel:
         return self.policy.predict(observation, state, episode_start, deterministic)
 
     def get_vec_normalize_env(self) -> None:
-        """No env: the normaliser is the ``LearnedPolicy``'s (``mpa_gym.agents.learned.anchor.set_rest``)."""
+        """No env: the normaliser is the ``LearnedPolicy``'s
+        (``mpa_gym.agents.learned.anchor.set_rest``)."""
         return None
 
 
@@ -240,8 +241,9 @@ def check_control_period(cfg: TrainConfig, dt_s: float, run: str | Path) -> None
 def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | None = None
               ) -> Policy:
     """``policy`` under the run-time assurance of its config's ``supervisor``
-    (``mpa_gym.agents.controllers.supervisor``): the fallback baseline is built for the env of ``env_kwargs``
-    (scenario, stiffness; task settings over the run's own), else for the run's training env."""
+    (``mpa_gym.agents.controllers.supervisor``): the fallback baseline is built for the env of
+    ``env_kwargs`` (scenario, stiffness; task settings over the run's own), else for the run's
+    training env."""
     from mpa_gym.agents.controllers.supervisor import Supervised
 
     from mpa_gym.analysis.scenario import load_scenario

@@ -1,6 +1,6 @@
-"""Training wrappers of a learned policy's controller front-end (``mpa_gym.agents.learned.frontend``: the
-tracking-error features, the force–stiffness action coordinates and the stiffness estimator,
-their definitions and their reasons).
+"""Training wrappers of a learned policy's controller front-end
+(``mpa_gym.agents.learned.frontend``: the tracking-error features, the force–stiffness action
+coordinates and the stiffness estimator, their definitions and their reasons).
 
 ``TrackingErrorObservation`` appends the features to the env's observation (or gives them
 alone: ``errors_only``); ``ForceStiffnessAction`` takes actions (a_F, a_k) in force–stiffness

@@ -112,8 +112,8 @@ class Sessions(list):  # type: ignore[type-arg]
 
 
 def read_sessions(path: str | Path) -> Sessions:
-    """The sessions of a rollout log, oldest first. ``mpa_gym.agents.rig.rollout`` appends to its log and
-    starts each session with a header, and episodes are numbered from 0 in each: the header,
+    """The sessions of a rollout log, oldest first. ``mpa_gym.agents.rig.rollout`` appends to its
+    log and starts each session with a header, and episodes are numbered from 0 in each: the header,
     not the episode number, is where one session's steps end and the next one's begin."""
     from mpa_gym.agents.rig.rollout import read_log
 
@@ -181,8 +181,8 @@ def episodes_of(s: Session, path: str | Path) -> list[LogData]:
 
 
 def load_log(path: str | Path, session: int | None = None) -> list[LogData]:
-    """The episodes of one session of a rollout log (``mpa_gym.agents.rig.rollout.read_log`` records with
-    ``t_s``): ``session`` as in ``pick_session`` (default the newest with step records)."""
+    """The episodes of one session of a rollout log (``mpa_gym.agents.rig.rollout.read_log`` records
+    with ``t_s``): ``session`` as in ``pick_session`` (default the newest with step records)."""
     return episodes_of(pick_session(read_sessions(path), session, path)[1], path)
 
 

@@ -14,10 +14,10 @@ fault: the rest of the session is not run), a fault in the pre-flight or a reset
 SIGTERM. The rig is vented in each case. ``--dry-run`` starts the device emulator on UDP
 loopback and rolls out against it.
 
-A supervised run (``mpa_gym.agents.controllers.supervisor``) logs ``{"event": "fallback", ...}`` at the step its
-fallback takes over and ``{"event": "last_resort", ...}`` at the step its last resort does; each
-step's ``fallback`` field is the stage that drove it (0 the policy, 1 the fallback, 2 the last
-resort).
+A supervised run (``mpa_gym.agents.controllers.supervisor``) logs ``{"event": "fallback", ...}`` at
+the step its fallback takes over and ``{"event": "last_resort", ...}`` at the step its last resort
+does; each step's ``fallback`` field is the stage that drove it (0 the policy, 1 the fallback, 2 the
+last resort).
 """
 
 from __future__ import annotations
@@ -181,7 +181,8 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                 obs, info = env.reset(seed=seed + ep)
                 state, start = None, np.array([True])
                 rows: list[dict[str, Any]] = []
-                fell = POLICY  # the supervisor's stage this episode (mpa_gym.agents.controllers.supervisor)
+                # the supervisor's stage this episode (mpa_gym.agents.controllers.supervisor)
+                fell = POLICY
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])

@@ -130,7 +130,8 @@ class TrackingMetrics(BaseCallback):
 def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normalizer: Any
                      ) -> list[tuple[dict[str, Any], int]]:
     """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario:
-    all at once, one batched policy call per step (``mpa_gym.agents.evaluation.episodes.run_episodes``)."""
+    all at once, one batched policy call per step
+    (``mpa_gym.agents.evaluation.episodes.run_episodes``)."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
     task = eval_task(cfg)
     traces = run_episodes([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
@@ -171,8 +172,8 @@ def _worker_evaluate(snapshot: tuple[bytes, bytes | None]) -> list[tuple[dict[st
 
 
 class EvalWorker(Worker):
-    """A spawned process (``mpa_gym.agents.worker.Worker``: it ignores Ctrl-C and exits with the training
-    process, even a SIGKILLed one) that runs held-out evaluations while training goes on.
+    """A spawned process (``mpa_gym.agents.worker.Worker``: it ignores Ctrl-C and exits with the
+    training process, even a SIGKILLed one) that runs held-out evaluations while training goes on.
 
     Each evaluation gets a pickled copy of the policy and its normaliser as they are at the
     evaluation's step (``snapshot``), so its figures are those of an evaluation in the training
@@ -394,8 +395,8 @@ def model_is_finite(model: Any) -> bool:
 
 
 def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
-    """The model (anchored at its normaliser's zero, ``mpa_gym.agents.learned.anchor.rest_for_save``) and its
-    normaliser, each written atomically."""
+    """The model (anchored at its normaliser's zero,
+    ``mpa_gym.agents.learned.anchor.rest_for_save``) and its normaliser, each written atomically."""
     with rest_for_save(model):
         atomic_save(model_path, model.save)
     norm = model.get_vec_normalize_env()

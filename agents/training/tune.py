@@ -22,9 +22,9 @@ as PostgreSQL, or a journal file on a shared disk).
   A ``lin_`` learning rate keeps its linear schedule. A new study's first trial is the config
   as written (user attribute ``base_config``) when its values lie in the space.
 - **Objectives** (both minimised): the held-out position RMSE [mm] and stiffness error [% of k̂],
-  each the mean over :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS` (30 s episodes, the report's
-  episode seed) and over the trial's seeds (``--seeds-per-trial``). The Pareto front is the
-  study's ``best_trials``. Wall-clock time [s] per trial is the user attribute ``wall_s``.
+  each the mean over :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS` (30 s episodes,
+  the report's episode seed) and over the trial's seeds (``--seeds-per-trial``). The Pareto front is
+  the study's ``best_trials``. Wall-clock time [s] per trial is the user attribute ``wall_s``.
 - **Pruning**: Optuna prunes single-objective studies only (``Trial.report`` is not defined for
   several objectives). ``--objective position`` makes the study single-objective on the held-out
   position RMSE (the stiffness error is kept as the user attribute ``stiffness_err_pct``) and
@@ -89,7 +89,8 @@ OBJECTIVES = {"both": ("position_rmse_mm", "stiffness_err_pct"), "position": ("p
 COUNTED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.RUNNING, TrialState.WAITING)
 # heartbeat, its retry callback and metric names are experimental in Optuna; used as documented
 warnings.filterwarnings("ignore", category=ExperimentalWarning, module="optuna")
-warnings.filterwarnings("ignore", category=ExperimentalWarning, module="mpa_gym.agents.training.tune")
+warnings.filterwarnings("ignore", category=ExperimentalWarning,
+                        module="mpa_gym.agents.training.tune")
 WRAPPER_PREFIX = {"TrackingErrorObservation": OBS_WRAPPER, "ForceStiffnessAction": ACTION_WRAPPER}
 
 
@@ -441,7 +442,8 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
          ) -> dict[str, Any]:
     """Run one worker: at most ``n_trials`` trials of the study (fewer once the study holds
     ``max_total_trials``). ``heldout``: the scenarios of the objectives (default
-    :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole study."""
+    :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS`). Returns a summary of the whole
+    study."""
     _check_counts(n_trials, max_total_trials, seeds_per_trial, n_timesteps, heartbeat_s)
     if objective not in OBJECTIVES:
         raise ValueError(f"--objective={objective!r}: allowed {sorted(OBJECTIVES)}")

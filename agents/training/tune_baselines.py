@@ -11,9 +11,9 @@ regulator with the supply), and the gains tuned on the draws alone were unstable
 dead time on the unloaded, frictionless leg of the robustness grid. It runs each candidate's
 gains on all of them as one batch of the native vector env, and minimises the mean position RMSE
 over the plants, each over the last three periods of a ``episode_s`` episode. A plant on which
-the loop is unstable (``mpa_gym.agents.evaluation.robustness``: its error does not settle onto the reference's
-period) or terminated counts as ``FAILED_MM``: a control engineer does not field gains that
-oscillate on a plant they were tuned for, however small the mean, and the gains the plain mean
+the loop is unstable (``mpa_gym.agents.evaluation.robustness``: its error does not settle onto the
+reference's period) or terminated counts as ``FAILED_MM``: a control engineer does not field gains
+that oscillate on a plant they were tuned for, however small the mean, and the gains the plain mean
 picked (Kd about 13 times the leg's critical damping) were unstable on three of the sixteen
 plants, all with dead times of 20 ms or more. The mean, not the worst case: with dead times up
 to 30 ms the worst training plant stays at several millimetres for every gain tried, and a
