@@ -167,14 +167,13 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
         a = check_action(action)
         e = self.engine
         e.step(a.reshape(1, 2), self._rngs)
-        out = e.out[0]
+        out = e.out[0].tolist()
         terminated = out[O_TERM] > 0.0
-        truncated = bool(e.truncated[0]) and not terminated
+        truncated = not terminated and e.truncated_of(0)
         self._done = terminated or truncated
         if self.render_mode == "human":
             self.render()
-        return (e.obs[0].astype(np.float32), float(out[O_R]), bool(terminated), bool(truncated),
-                e.info(0))
+        return e.obs[0].astype(np.float32), out[O_R], terminated, truncated, e.info(0)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

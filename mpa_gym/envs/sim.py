@@ -441,7 +441,14 @@ class SimEngine:
     @property
     def truncated(self) -> np.ndarray:
         """Legs whose episode has run its full length."""
-        return self.idx - self.start >= self.plan.n_steps
+        return self.truncated_of()
+
+    def truncated_of(self, i: int | None = None) -> Any:
+        """Whether leg i's episode has run its full length (a bool), or every leg's (an array,
+        ``truncated``); one leg's is read as Python ints, a fraction of the array ops' cost."""
+        idx, start = (self.idx, self.start) if i is None else (self.idx.item(i),
+                                                                self.start.item(i))
+        return idx - start >= self.plan.n_steps
 
     def plan_of(self, i: int) -> TaskPlan:
         """The plan leg i follows in its current episode."""
@@ -452,9 +459,9 @@ class SimEngine:
         if i is None:
             j = self.idx
             return step_info(self.out, self.state, self.tab[j], (j - self.start) * self.cfg.dt_s)
-        j = int(self.idx[i])
+        j = self.idx.item(i)
         return step_info(self.out[i], self.state[i], self.tab[j],
-                         (j - int(self.start[i])) * self.cfg.dt_s)
+                         (j - self.start.item(i)) * self.cfg.dt_s)
 
 
 __all__ = ["SimEngine", "observe_rows", "resolve_plant", "step_batch"]
