@@ -80,7 +80,9 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
     0.3), so a perfect tracker earns 1 per step; the heavy-tailed kernels keep a gradient toward
     the target even for errors of several σ. k is the plant's true joint stiffness −∂F/∂X
     (Eq. 23) at the applied pressures, k̂ the design's. Each term is in `info` (`reward_position`,
-    `reward_stiffness`, `reward_effort`).
+    `reward_stiffness`, `reward_effort`), and r is their sum on every step. A step that
+    terminates the episode earns r = 0 with all three terms 0: its state is out of bounds (or
+    out of the model's domain), not one to be rewarded for tracking.
 
     ## Starting State
 
@@ -89,7 +91,9 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Episode End
 
-    - Termination: X leaves [`x_min_m`, `x_max_m`] = [0.70, 0.86] m (or the model's domain).
+    - Termination: X leaves [`x_min_m`, `x_max_m`] = [0.70, 0.86] m (or the model's domain);
+      that step's reward is 0 (Rewards). The reward, its terms and termination are composed by
+      `mpa_gym.task.kernels.finish_step`, as on the rig (`MPALegHardware-v0`).
     - Truncation: after `episode_s` (default: the scenario's `duration_s`, 30 s = 3000 steps).
 
     ## Arguments
@@ -167,14 +171,13 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
         a = check_action(action)
         e = self.engine
         e.step(a.reshape(1, 2), self._rngs)
-        out = e.out[0]
+        out = e.out[0].tolist()
         terminated = out[O_TERM] > 0.0
-        truncated = bool(e.truncated[0]) and not terminated
+        truncated = not terminated and e.truncated_of(0)
         self._done = terminated or truncated
         if self.render_mode == "human":
             self.render()
-        return (e.obs[0].astype(np.float32), float(out[O_R]), bool(terminated), bool(truncated),
-                e.info(0))
+        return e.obs[0].astype(np.float32), out[O_R], terminated, truncated, e.info(0)
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:

@@ -7,8 +7,8 @@ Per step and leg: action → pressure command (direct or feedforward + residual)
 first-order lag solved exactly inside the RK4 steps; a dead time that is not a whole number of
 control periods switches the command inside the period) → plant (Eq. 15 with the braid and
 slider friction, RK4 over one control period, under the plan's disturbance and the leg's own
-random kick) → true stiffness (Eq. 23) → reward, termination → sensors (encoder quantum, white
-noise) → observation.
+random kick) → true stiffness (Eq. 23) → reward, termination (``task.kernels.finish_step``, the
+rig's composition too) → sensors (encoder quantum, white noise) → observation.
 """
 
 from __future__ import annotations
@@ -33,11 +33,6 @@ from mpa_gym.task.contract import (
     O_CMDF,
     O_FLAGS,
     O_K,
-    O_R,
-    O_RK,
-    O_RU,
-    O_RX,
-    O_TERM,
     OUT,
     ST_PE,
     ST_PF,
@@ -47,35 +42,28 @@ from mpa_gym.task.contract import (
     T_FEXT,
     T_FFE,
     T_FFF,
-    T_KREF,
-    T_XREF,
     obs_spec,
     step_info,
 )
-from mpa_gym.task.homing import (
-    HomingConfig,
-    HomingController,
-    HomingError,
-    vented_rest,
+from mpa_gym.task.homing import HomingConfig, HomingError, home, vented_rest
+from mpa_gym.task.kernels import (
+    S_DMAX,
+    S_DT,
+    S_ENC,
+    S_PMAX,
+    S_QUANTUM,
+    S_RESIDUAL,
+    S_SCALE,
+    S_SUB,
+    command_from_action,
+    finish_step,
+    observe,
+    safe_command,
+    task_settings,
 )
-from mpa_gym.task.kernels import command_from_action, observe, reward_terms, safe_command
 from mpa_gym.task.plan import TaskPlan
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
-
-# The scalar settings vector the compiled step reads, packed by name (``pack_settings``).
-SETTINGS = ("residual", "residual_scale_Pa", "p_max_Pa", "max_delta_Pa", "quantum_Pa", "dt_s",
-            "x_min_m", "x_max_m", "sigma_x_m", "sigma_k", "w_k", "w_u", "encoder_m", "substeps")
-(S_RESIDUAL, S_SCALE, S_PMAX, S_DMAX, S_QUANTUM, S_DT, S_XLO, S_XHI, S_SIGX, S_SIGK, S_WK, S_WU,
- S_ENC, S_SUB) = (SETTINGS.index(n) for n in SETTINGS)
-
-
-def pack_settings(**values: float) -> np.ndarray:
-    """The settings vector from its named entries (all of ``SETTINGS``, no others)."""
-    if set(values) != set(SETTINGS):
-        raise ValueError(f"settings: got {sorted(values)}; expected {sorted(SETTINGS)}")
-    return np.array([float(values[k]) for k in SETTINGS], dtype=np.float64)
-
 
 @numba.njit(**JIT)
 def _observe(obs, i, X, V, Pe, Pf, j, noise, enc, tab, spec):
@@ -143,17 +131,9 @@ def _step_leg(i, action, state, prev_cmd, idx, consts, dead, hist, head, noise, 
     state[i, ST_PE] = Pe
     state[i, ST_PF] = Pf
     _, k = fast.force_and_stiffness(X, V, Pe, Pf, consts[i])
-    out[i, O_K] = k
     j += 1
     idx[i] = j
-    r, rx, rk, ru = reward_terms(X - tab[j, T_XREF], k, tab[j, T_KREF], a_e, a_f,
-                                 s[S_SIGX], s[S_SIGK], s[S_WK], s[S_WU])
-    ok = (s[S_XLO] <= X <= s[S_XHI]) and not failed
-    out[i, O_TERM] = 0.0 if ok else 1.0
-    out[i, O_R] = r if ok else 0.0
-    out[i, O_RX] = rx if ok else 0.0
-    out[i, O_RK] = rk if ok else 0.0
-    out[i, O_RU] = ru
+    finish_step(out[i], X, k, tab[j], a_e, a_f, s, failed)  # reward, termination (task layer)
     _observe(obs, i, X, V, Pe, Pf, j, noise, s[S_ENC], tab, spec)
 
 
@@ -250,13 +230,8 @@ class SimEngine:
 
     def _configure_shared(self, pl: Plant) -> None:
         """Regulator quantum and sensors are the rig's, shared by the batch."""
-        c = self.cfg
-        self.settings = pack_settings(
-            residual=1.0 if self.residual else 0.0, residual_scale_Pa=c.residual_scale_bar * BAR,
-            p_max_Pa=c.p_max_bar * BAR, max_delta_Pa=c.max_delta_Pa,
-            quantum_Pa=pl.pressure_quantum_bar * BAR, dt_s=c.dt_s, x_min_m=c.x_min_m,
-            x_max_m=c.x_max_m, sigma_x_m=c.sigma_x_m, sigma_k=c.sigma_k, w_k=self.w_k,
-            w_u=c.w_effort, encoder_m=pl.encoder_resolution_m, substeps=c.substeps)
+        self.settings = task_settings(self.cfg, self.residual, pl.pressure_quantum_bar * BAR,
+                                      pl.encoder_resolution_m)
         std = {"x_m": pl.position_noise_m, "v_mps": pl.velocity_noise_mps,
                "pe_Pa": pl.pressure_noise_bar * BAR, "pf_Pa": pl.pressure_noise_bar * BAR}
         self.noise_std = np.array([std[name] for name in STATE])  # SI, per STATE signal
@@ -353,25 +328,29 @@ class SimEngine:
         its commands still in the dead-time line. Raises ``HomingError`` like the rig's reset."""
         c = self.consts[i]
         x, v = (vented_rest(c), 0.0) if start is None else start
-        pe = pf = 0.0
-        ctrl = HomingController(cfg, float(plan.x_ref[0]), plan.p0, self.cfg.dt_s,
-                                self.cfg.p_max_bar * BAR, self.params)
-        ctrl.start(x, np.zeros(2))
+        leg = [x, v, 0.0, 0.0]  # X, V, P'_e, P'_f: the plant's state, both MPAs vented
         n_d, phi = int(self.dead[i, 0]), float(self.dead[i, 1])
         past = [np.zeros(2)] * (n_d + 1)  # vented: what the regulators were last told
         lo, hi = END_STOPS_M
         sub = int(self.settings[S_SUB])
-        while True:  # the dead time as in the kernel: old command until φ, then new
-            past = [*past[-(n_d + 1):], ctrl.command(x, v).copy()]
+
+        def period(cmd: np.ndarray) -> tuple[float, float]:
+            """One control period of the plant under ``cmd``, the dead time as in the kernel:
+            the old command until φ, then the new one."""
+            past.append(cmd.copy())
+            del past[:-(n_d + 2)]
             new, old = past[-1 - n_d], past[-2 - n_d]
-            x, v, pe, pf = fast.plant_step(x, v, pe, pf, old[0], old[1], new[0], new[1], phi,
-                                           0.0, self.cfg.dt_s, c, sub)
+            x, v, pe, pf = fast.plant_step(*leg, old[0], old[1], new[0], new[1], phi, 0.0,
+                                           self.cfg.dt_s, c, sub)
             if not (np.isfinite(x) and np.isfinite(v)):
                 raise HomingError(f"homing (sim): leg {i} left the model's domain")
             if not lo <= x <= hi:  # the rig's end stops
                 x, v = min(max(x, lo), hi), 0.0
-            if ctrl.done and ctrl.arrived(x, v):  # hand over only within the tolerances
-                break
+            leg[:] = x, v, pe, pf
+            return x, v
+
+        ctrl = home(cfg, plan, self.cfg, self.params, x, v, np.zeros(2), period)
+        x, v, pe, pf = leg
         self.state[i, [ST_X, ST_V, ST_PE, ST_PF]] = (x, v, pe, pf)
         self.prev_cmd[i] = ctrl.cmd
         cap = self.hist.shape[1]
@@ -441,7 +420,14 @@ class SimEngine:
     @property
     def truncated(self) -> np.ndarray:
         """Legs whose episode has run its full length."""
-        return self.idx - self.start >= self.plan.n_steps
+        return self.truncated_of()
+
+    def truncated_of(self, i: int | None = None) -> Any:
+        """Whether leg i's episode has run its full length (a bool), or every leg's (an array,
+        ``truncated``); one leg's is read as Python ints, a fraction of the array ops' cost."""
+        idx, start = (self.idx, self.start) if i is None else (self.idx.item(i),
+                                                                self.start.item(i))
+        return idx - start >= self.plan.n_steps
 
     def plan_of(self, i: int) -> TaskPlan:
         """The plan leg i follows in its current episode."""
@@ -452,9 +438,9 @@ class SimEngine:
         if i is None:
             j = self.idx
             return step_info(self.out, self.state, self.tab[j], (j - self.start) * self.cfg.dt_s)
-        j = int(self.idx[i])
+        j = self.idx.item(i)
         return step_info(self.out[i], self.state[i], self.tab[j],
-                         (j - int(self.start[i])) * self.cfg.dt_s)
+                         (j - self.start.item(i)) * self.cfg.dt_s)
 
 
 __all__ = ["SimEngine", "observe_rows", "resolve_plant", "step_batch"]

@@ -38,8 +38,14 @@ from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task import contract as C
 from mpa_gym.task.config import TaskConfig
-from mpa_gym.task.homing import HomingConfig, HomingController, HomingError
-from mpa_gym.task.kernels import command_from_action, observe, reward_terms, safe_command
+from mpa_gym.task.homing import HomingConfig, HomingError, home
+from mpa_gym.task.kernels import (
+    command_from_action,
+    finish_step,
+    observe,
+    safe_command,
+    task_settings,
+)
 from mpa_gym.task.plan import make_plan
 
 # [Hz] the rig's control rate: the sim's control period by default; what the link and the
@@ -47,6 +53,10 @@ from mpa_gym.task.plan import make_plan
 CONTROL_HZ = 1.0 / TaskConfig.dt_s
 CONTROL_HZ_RANGE = (1.0, 500.0)
 SPIN_S = 3e-4  # [s] the loop polls (spins) through this long before each deadline (wait_s)
+# What the rig's step info holds beyond the sim envs' (``task.contract.step_info``): its timing
+# and link figures, on every step; ``fault`` (why it stopped) on the step that stops it.
+LINK_INFO_KEYS = ("overruns", "period_s", "jitter_s", "latency_s", "corrupt_frames",
+                  "late_telemetry", "device_faults")
 
 
 def wait_s(left_s: float, spin_s: float) -> float:
@@ -94,21 +104,23 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Rewards
 
-    As the sim envs; k is Eq. (23) of the *nominal* model at the measured state and pressures
-    (the rig has no stiffness sensor).
+    As the sim envs, composed by the same `mpa_gym.task.kernels.finish_step` (reward, its
+    terms, termination; a terminating step earns 0 with all terms 0, whatever stopped it); k
+    is Eq. (23) of the *nominal* model at the measured state and pressures (the rig has no
+    stiffness sensor).
 
     ## Starting State
 
     `reset` brings the leg from wherever it rests to X̂(0) by closed-loop homing
-    (`mpa_gym.task.homing`: feedforward + a slew-limited PI on position, settings in
-    `HomingConfig`), holds it at rest there and hands over: the first step's slew limit counts
-    from the homing's last command. If no telemetry has arrived yet it vents once first (the one
-    safe command; it also tells a UDP device where to answer). A homing failure vents the rig and
-    raises `HardwareFault` naming what was measured. With `homing=None` it instead holds the
-    design's start pressures open-loop for at least `settle_s` until the leg rests within 5 mm
-    of X̂(0), failing after `settle_timeout_s` more (only a leg that matches the model starts
-    that way; the tests that compare the rig with the sim step for step use it).
-    `reset(options={"homing": ...})` overrides the setting for one episode; the rig's plant
+    (`mpa_gym.task.homing.home`, the loop the sim envs' homing runs too: feedforward + a
+    slew-limited PI on position, settings in `HomingConfig`), holds it at rest there and hands over:
+    the first step's slew limit counts from the homing's last command. If no telemetry has arrived
+    yet it vents once first (the one safe command; it also tells a UDP device where to answer). A
+    homing failure vents the rig and raises `HardwareFault` naming what was measured. With
+    `homing=None` it instead holds the design's start pressures open-loop for at least `settle_s`
+    until the leg rests within 5 mm of X̂(0), failing after `settle_timeout_s` more (only a leg that
+    matches the model starts that way; the tests that compare the rig with the sim step for step use
+    it). `reset(options={"homing": ...})` overrides the setting for one episode; the rig's plant
     cannot be set. `info["homing_s"]` says how long the reset took.
 
     ## Episode End
@@ -145,7 +157,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     `info` on every step: the sim envs' keys and `overruns`, `period_s`, `jitter_s`,
     `latency_s` (command to acknowledging telemetry), `corrupt_frames`, `late_telemetry`,
-    `device_faults`, and `fault` when the rig stopped.
+    `device_faults` (`LINK_INFO_KEYS`), and `fault` when the rig stopped.
 
     ## Version History
 
@@ -175,6 +187,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self.observation_space = C.observation_space(self.cfg, self.residual)
         self._spec = C.obs_spec(self.residual)  # the observation layout (task.contract)
         self._table = self.plan.table()
+        self._settings = task_settings(self.cfg, self.residual)  # what finish_step reads
         self._no_noise = np.zeros(len(C.STATE))  # the rig's sensors add their own
         self.nominal = fast.pack(params)
         self.params = params
@@ -183,8 +196,9 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         # than the device's watchdog allows between two commands
         command_from_action(0.0, 0.0, True, 1.0, 1.0)
         safe_command(0.0, 0.0, 1.0, 1.0)
-        reward_terms(0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.5, 0.1)
         x_rest = params.leg.x_rest
+        finish_step(np.zeros(len(C.OUT)), x_rest, 1.0, self._table[0], 0.0, 0.0, self._settings,
+                    False)
         fast.force_and_stiffness(x_rest, 0.0, 0.0, 0.0, self.nominal)
         observe(np.zeros(self._spec.shape[0]), x_rest, 0.0, 0.0, 0.0, self._table[0],
                 self._no_noise, self._spec)
@@ -342,8 +356,10 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._done = False
         obs = self._observe()
         t = self._tel
-        k0 = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)[1]
-        info = self._info((0.0, 0.0, 0.0, 0.0), 0, p_hold, k0)  # no reward before a step
+        out = np.zeros(len(C.OUT))  # no reward before a step
+        out[C.O_CMDE:C.O_CMDF + 1] = p_hold
+        out[C.O_K] = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)[1]
+        info = self._info(out)
         info["homing_s"] = time.monotonic() - t0
         return obs, info
 
@@ -364,18 +380,13 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                                 "check the link and that the device is on")
 
     def _home(self, cfg: HomingConfig) -> np.ndarray:
-        """Closed-loop homing (``mpa_gym.task.homing``); returns the holding command [Pa]."""
-        ctrl = HomingController(cfg, float(self.plan.x_ref[0]), self.plan.p0, self.cfg.dt_s,
-                                self.cfg.p_max_bar * BAR, self.params)
-        t = self._tel
-        ctrl.start(t.x_m, np.array([t.pe_Pa, t.pf_Pa]))
+        """Closed-loop homing (``mpa_gym.task.homing.home``, the sim's loop too); returns the
+        holding command [Pa]."""
         deadline = time.monotonic()
-        while True:
-            t = self._tel
-            try:
-                cmd = ctrl.command(t.x_m, t.v_mps)
-            except HomingError as e:
-                raise HardwareFault(f"reset: {e}") from None
+
+        def period(cmd: np.ndarray) -> tuple[float, float]:
+            """Send the command, read telemetry until the period's end; the newest (X, V)."""
+            nonlocal deadline
             self._send(proto.Command, float(cmd[0]), float(cmd[1]))
             deadline = max(deadline + self.cfg.dt_s, time.monotonic())
             self._read(deadline)
@@ -384,8 +395,14 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             reason = self._check(max(self.stale_s, cfg.stale_s), watchdog=False)
             if reason is not None:
                 raise HardwareFault(f"reset (homing): {reason}")
-            if ctrl.done and ctrl.arrived(self._tel.x_m, self._tel.v_mps):
-                break  # the frame the episode starts from is within the tolerances too
+            return self._tel.x_m, self._tel.v_mps
+
+        t = self._tel
+        try:
+            ctrl = home(cfg, self.plan, self.cfg, self.params, t.x_m, t.v_mps,
+                        np.array([t.pe_Pa, t.pf_Pa]), period)
+        except HomingError as e:
+            raise HardwareFault(f"reset: {e}") from None
         return ctrl.cmd.copy()
 
     def _settle_open_loop(self) -> np.ndarray:
@@ -488,34 +505,33 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._obs_time = self._tel_time
         t = self._tel
         _, k = fast.force_and_stiffness(t.x_m, t.v_mps, t.pe_Pa, t.pf_Pa, self.nominal)
-        r = reward_terms(t.x_m - p.x_ref[j], k, p.k_ref[j], a[0], a[1], c.sigma_x_m, c.sigma_k,
-                         c.stiffness_weight(self.residual), c.w_effort)
-        if reason is None and not (c.x_min_m <= t.x_m <= c.x_max_m):
+        out = np.zeros(len(C.OUT))
+        out[C.O_CMDE:C.O_CMDF + 1] = cmd
+        out[C.O_FLAGS] = flags
+        # reward, its terms and termination: the sim's composition (task.kernels.finish_step)
+        terminated = finish_step(out, t.x_m, k, self._table[j], a[0], a[1], self._settings,
+                                 reason is not None)
+        if reason is None and terminated:
             reason = (f"position bound: X = {t.x_m:.4f} m left [{c.x_min_m:g}, "
                       f"{c.x_max_m:g}] m (unstable or too aggressive controller?)")
-        terminated = reason is not None
         truncated = j >= p.n_steps and not terminated
         if math.isfinite(period):
             self.timing["period_s"].append(period)
         latency = self._latency[-1] if self._latency else math.nan
         self.timing["latency_s"].append(latency)
-        info = self._info(np.array(r), flags, cmd, k, period, latency)
+        info = self._info(out, period, latency)
         if reason is not None:
             info["fault"] = reason
         if terminated:
             self.vent()
         self._done = terminated or truncated
-        reward = float(r[0]) if not terminated else 0.0
-        return self._observe(), reward, terminated, truncated, info
+        return self._observe(), float(out[C.O_R]), terminated, truncated, info
 
-    def _info(self, r: np.ndarray, flags: int, cmd: np.ndarray, k: float,
-              period: float = math.nan, latency: float = math.nan) -> dict[str, Any]:
+    def _info(self, out: np.ndarray, period: float = math.nan, latency: float = math.nan
+              ) -> dict[str, Any]:
+        """The sim envs' info (``task.contract.step_info`` of the output row ``out`` and the
+        newest telemetry) and the rig's ``LINK_INFO_KEYS``."""
         t, j = self._tel, self._j
-        out = np.zeros(len(C.OUT))
-        out[C.O_CMDE:C.O_CMDF + 1] = cmd
-        out[C.O_K] = k
-        out[[C.O_R, C.O_RX, C.O_RK, C.O_RU]] = r  # reward_terms' order: total, its 3 terms
-        out[C.O_FLAGS] = flags
         state = np.array([getattr(t, name) for name in C.STATE])  # telemetry fields by name
         return {
             **C.step_info(out, state, self._table[j], j * self.cfg.dt_s),

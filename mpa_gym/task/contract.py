@@ -20,6 +20,7 @@ versions and the rig (``MPALegHardware-v0``): defined here once, read everywhere
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -160,18 +161,19 @@ def step_info(out: np.ndarray, state: np.ndarray, ref: np.ndarray, t_s: Any) -> 
     ``out`` holds the OUT columns, ``state`` the STATE columns (measured), ``ref`` the plan's
     PLAN row for the step just reached; ``t_s`` its time. Pressures are shown in bar.
     """
-    if out.ndim == 1:  # one leg: plain Python numbers
+    if out.ndim == 1:  # one leg: plain Python numbers (one tolist per row is the cheap read)
+        o, s, r = out.tolist(), state.tolist(), ref.tolist()
         return {
-            "x_m": float(state[ST_X]),
-            "x_ref_m": float(ref[T_XREF]),
-            "k_N_per_m": float(out[O_K]),
-            "k_ref_N_per_m": float(ref[T_KREF]),
-            "pressure_cmd_bar": out[O_CMDE:O_CMDF + 1] / BAR,
-            "pressure_bar": state[ST_PE:ST_PF + 1] / BAR,
-            "reward_position": float(out[O_RX]),
-            "reward_stiffness": float(out[O_RK]),
-            "reward_effort": float(out[O_RU]),
-            "safety": int(out[O_FLAGS]),
+            "x_m": s[ST_X],
+            "x_ref_m": r[T_XREF],
+            "k_N_per_m": o[O_K],
+            "k_ref_N_per_m": r[T_KREF],
+            "pressure_cmd_bar": np.array((o[O_CMDE] / BAR, o[O_CMDF] / BAR)),
+            "pressure_bar": np.array((s[ST_PE] / BAR, s[ST_PF] / BAR)),
+            "reward_position": o[O_RX],
+            "reward_stiffness": o[O_RK],
+            "reward_effort": o[O_RU],
+            "safety": int(o[O_FLAGS]),
             "t_s": t_s,
         }
     return {key: np.array(value) for key, value in (  # a batch: arrays, one entry per leg
@@ -203,19 +205,23 @@ def check_action(action: Any, n: int | None = None) -> np.ndarray:
     if arr.dtype.kind not in "iuf":
         raise ValueError(f"action={action!r} must be real numbers (dtype {arr.dtype} given); "
                          "allowed range [-1, 1] (extensor, flexor)")
-    a = arr.astype(np.float64, copy=False)
     shape = (2,) if n is None else (n, 2)
-    if a.shape != shape:
+    if arr.shape != shape:
         what = "action has" if n is None else "actions have"
-        raise ValueError(f"{what} shape {a.shape}; expected {shape} (extensor, flexor) in "
+        raise ValueError(f"{what} shape {arr.shape}; expected {shape} (extensor, flexor) in "
                          "[-1, 1]")
+    if n is None:  # one env, every step: on two Python floats, a fraction of the array ops'
+        # cost; the same float64 values and the same clip as the batch branch below
+        a_e, a_f = (arr if arr.dtype.char in "efd" else arr.astype(np.float64)).tolist()
+        if not (math.isfinite(a_e) and math.isfinite(a_f)):
+            raise ValueError(f"action={[a_e, a_f]} must be finite; allowed range [-1, 1] "
+                             "(extensor, flexor)")
+        return np.array((a_e if -1.0 <= a_e <= 1.0 else (1.0 if a_e > 0.0 else -1.0),
+                         a_f if -1.0 <= a_f <= 1.0 else (1.0 if a_f > 0.0 else -1.0)))
+    a = arr.astype(np.float64, copy=False)
     finite = np.isfinite(a)
     if not finite.all():
-        if n is None:
-            where, shown = "action", a
-        else:
-            row = int(np.flatnonzero(~finite.all(axis=1))[0])
-            where, shown = f"action[{row}]", a[row]
-        raise ValueError(f"{where}={shown.tolist()} must be finite; allowed range [-1, 1] "
-                         "(extensor, flexor)")
+        row = int(np.flatnonzero(~finite.all(axis=1))[0])
+        raise ValueError(f"action[{row}]={a[row].tolist()} must be finite; allowed range "
+                         "[-1, 1] (extensor, flexor)")
     return np.minimum(np.maximum(a, -1.0), 1.0)  # np.clip's dispatch costs a sim step's time

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -166,6 +167,29 @@ class HomingController:
                 f"{c.velocity_tolerance_mps:g} m/s); check the supply pressure, the load and "
                 "the leg")
         return self.cmd
+
+
+def home(cfg: HomingConfig, plan: Any, task: Any, params: Params, x: float, v: float,
+         pressures: np.ndarray, period: Callable[[np.ndarray], tuple[float, float]]
+         ) -> HomingController:
+    """Home one leg: the homing loop of the sim envs' and the rig's reset, written once.
+
+    From the measured (``x``, ``v``) and ``pressures`` [Pa], every control period the law
+    (:class:`HomingController`, toward the plan's X̂(0), flexor to its P'_f(0)) gives a command
+    and ``period(command)`` applies it for one period, returning the newest measured (X, V):
+    the sim steps its plant there, the rig sends the command and reads its telemetry (either may
+    raise to stop). The loop ends when the law is done and the newest state is within the
+    tolerances too (the hand-over rule of :meth:`HomingController.arrived`). Returns the
+    controller: ``cmd`` is the last command (the one the episode's slew limit starts from), ``t``
+    the time homing took. Raises ``HomingError`` past the timeout.
+    """
+    ctrl = HomingController(cfg, float(plan.x_ref[0]), plan.p0, task.dt_s, task.p_max_bar * BAR,
+                            params)
+    ctrl.start(x, pressures)
+    while True:
+        x, v = period(ctrl.command(x, v))
+        if ctrl.done and ctrl.arrived(x, v):
+            return ctrl
 
 
 def vented_rest(consts: np.ndarray) -> float:
