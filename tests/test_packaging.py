@@ -121,7 +121,7 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
         stack.append(u)
         for v in sorted(graph.get(u, ())):
             if state.get(v) == 1:
-                return stack[stack.index(v):] + [v]
+                return [*stack[stack.index(v):], v]
             if v not in state and (found := visit(v)):
                 return found
         state[u] = 2

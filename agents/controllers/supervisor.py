@@ -57,7 +57,7 @@ import mpa_gym.agents.controllers.baselines as baselines
 import numpy as np
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy
 
-from mpa_gym.model.params import check_range
+from mpa_gym.model.params import check_keys, check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
@@ -276,10 +276,8 @@ class SupervisorSpec:
                              f"(or the flat form's {list(FLAT_KEYS)})")
         if not set(value) & set(declared):
             return cls.from_flat(value)
-        unknown = sorted(set(value) - set(declared), key=str)
-        if unknown:
-            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are "
-                             f"{declared} (the flat form's keys do not mix with them)")
+        check_keys("supervisor", value, declared,
+                   note="the flat form's keys do not mix with them")
         stages = _stages(value.get("stages"))
         used = {m for s in stages for m in s.monitors}
         monitors = _monitors(value.get("monitors"))
@@ -292,10 +290,8 @@ class SupervisorSpec:
         (error_*), limit cycle (aperiodic_*) and, with persistent_mm, persistent error (over
         aperiodic_window_s); then the fallback, judged on divergence alone after
         ``GRACE_PERIODS`` when a last_resort follows it."""
-        unknown = sorted(set(value) - set(FLAT_KEYS), key=str)
-        if unknown:
-            raise ValueError(f"supervisor: unknown key(s) {unknown}; allowed keys are "
-                             f"['monitors', 'stages'] or the flat form's {list(FLAT_KEYS)}")
+        check_keys("supervisor", value, FLAT_KEYS,
+                   note="or, instead of the flat form, ['monitors', 'stages']")
         f = {**FLAT_KEYS, **value}
         if f["fallback"] not in FALLBACKS:
             raise ValueError(f"supervisor.fallback={f['fallback']!r}: allowed {list(FALLBACKS)}")

@@ -26,7 +26,7 @@ from mpa_gym.analysis.scenario import (
     check_plant_value,
 )
 from mpa_gym.model import fast
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_keys
 from mpa_gym.task.config import END_STOPS_M, TaskConfig
 from mpa_gym.task.contract import (
     O_CMDE,
@@ -365,10 +365,7 @@ class SimEngine:
             raise ValueError(f"reset options={options!r} must be a dict with the keys "
                              f"{list(RESET_OPTIONS)} (each optional)")
         options = dict(options or {})
-        unknown = sorted(set(options) - set(RESET_OPTIONS), key=str)
-        if unknown:
-            raise ValueError(f"reset options: unknown key(s) {unknown}; allowed keys are "
-                             f"{list(RESET_OPTIONS)}")
+        check_keys("reset options", options, RESET_OPTIONS)
         fixed = options.get("plant")
         if isinstance(fixed, list | tuple):  # per leg: only the fields a leg may have its own of
             if len(fixed) != self.n or not all(isinstance(f, dict) for f in fixed):

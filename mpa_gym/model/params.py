@@ -49,12 +49,15 @@ def check_range(
 
 
 def check_keys(where: str, keys: Iterable[Any], allowed: Iterable[str],
-               error: type[Exception] = ValueError) -> None:
+               error: type[Exception] = ValueError, note: str = "") -> None:
     """Raise ``error`` naming the keys of ``keys`` (a mapping's) that are not ``allowed``, and
-    the allowed ones: the one check of a config section's keys."""
+    the allowed ones (``note`` added in parentheses): the one check of a config section's
+    keys."""
+    allowed = sorted(allowed)
     unknown = sorted(set(keys) - set(allowed), key=str)
     if unknown:
-        raise error(f"{where}: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
+        raise error(f"{where}: unknown key(s) {unknown}; allowed keys are {allowed}"
+                    + (f" ({note})" if note else ""))
 
 
 def _positive(obj: object, *names: str, units: dict[str, str]) -> None:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mpa_gym.design.feedforward import P_MAX_DEFAULT
-from mpa_gym.model.params import BAR, check_range
+from mpa_gym.model.params import BAR, check_keys, check_range
 
 # [m] the hip heights of the rig's mechanical end stops (lower, upper): the leg cannot leave this
 # range, a vented leg rests on the lower one; the termination bounds lie within it
@@ -60,9 +60,7 @@ class TaskConfig:
             raise ValueError(f"task={kwargs!r} must be a mapping of task settings; allowed keys "
                              f"are {sorted(allowed)}")
         kwargs = dict(kwargs or {})
-        unknown = sorted(set(kwargs) - allowed)
-        if unknown:
-            raise ValueError(f"task: unknown key(s) {unknown}; allowed keys are {sorted(allowed)}")
+        check_keys("task", kwargs, allowed)
         return cls(**kwargs)
 
     def stiffness_weight(self, residual: bool) -> float:

@@ -37,7 +37,7 @@ import numpy as np
 
 from mpa_gym.design.feedforward import P_MAX_DEFAULT
 from mpa_gym.model import fast
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_keys, check_range
 from mpa_gym.task.config import END_STOPS_M
 
 
@@ -90,11 +90,7 @@ class HomingConfig:
         if isinstance(option, HomingConfig):
             return option
         if isinstance(option, dict):
-            allowed = {f.name for f in dataclasses.fields(cls)}
-            unknown = sorted(set(option) - allowed)
-            if unknown:
-                raise ValueError(f"homing: unknown key(s) {unknown}; allowed keys are "
-                                 f"{sorted(allowed)}")
+            check_keys("homing", option, [f.name for f in dataclasses.fields(cls)])
             return cls(**option)
         raise ValueError(f"homing={option!r} must be true, false or a dict of "
                          f"{[f.name for f in dataclasses.fields(cls)]}")
