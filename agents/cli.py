@@ -215,7 +215,7 @@ def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
 
         return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig)}
     if a.inference is not None:
-        from mpa_gym.agents.learned.inference import benchmark
+        from mpa_gym.agents.rig.bench import benchmark
 
         if not 100 <= a.actions <= 10_000_000:
             raise ValueError(f"--actions={a.actions} is outside the allowed range [100, 1e7]")
@@ -236,19 +236,15 @@ def show_bench(o: dict[str, Any]) -> str:
 
         return show_loop_benchmark(o["loop"])
     if "inference" in o:
-        from mpa_gym.agents.learned.inference import show_benchmark
+        from mpa_gym.agents.rig.bench import show_benchmark
 
         return show_benchmark(o["inference"])
     return bench.show(o)
 
 
 def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
-    from mpa_gym.agents.training.train import (
-        TrainingStopped,
-        read_eval_history,
-        train,
-        zip_timesteps,
-    )
+    from mpa_gym.agents.learned.runs import read_eval_history, zip_timesteps
+    from mpa_gym.agents.training.train import TrainingStopped, train
 
     if a.n_timesteps is not None and not 1 <= a.n_timesteps <= 10**10:
         raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, 1e10]")

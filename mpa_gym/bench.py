@@ -16,7 +16,9 @@ import gymnasium as gym
 import numpy as np
 
 import mpa_gym  # noqa: F401  (registers the envs)
-from mpa_gym.model.params import DEFAULT_PARAMS
+from mpa_gym.model.dynamics import integrate_reference, plant_rhs
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS
+from mpa_gym.task.contract import ST_V, ST_X
 
 SINGLE_IDS = ("MPALeg-v0", "MPALegResidual-v0", "CartPole-v1", "Pendulum-v1")
 VECTOR_IDS = ("MPALeg-v0", "MPALegResidual-v0", "CartPole-v1")
@@ -68,9 +70,6 @@ def integrator_error(duration_s: float = 30.0, residual_bar: float = 0.3) -> flo
     substeps per 10 ms), from Fig. 4(a)'s initial error with a smooth residual of
     ``residual_bar`` on the feedforward (what a trained policy adds), against scipy DOP853
     (rtol 1e-10) integrating every 10 ms segment with the same held command."""
-    from mpa_gym.model.dynamics import integrate_reference, plant_rhs
-    from mpa_gym.model.params import BAR
-    from mpa_gym.task.contract import ST_V, ST_X
 
     env = gym.make("MPALegResidual-v0", scenario="initial_error",
                    task={"episode_s": duration_s})

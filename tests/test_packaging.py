@@ -45,10 +45,15 @@ def _imports(path: Path) -> Iterator[tuple[str, int, bool]]:
     N`` counts as importing P.N where that is a module, else P."""
     tree = ast.parse(path.read_text())
     local: set[int] = set()
+    typing_only: set[int] = set()  # under ``if TYPE_CHECKING:``: never imported at run time
     for fn in ast.walk(tree):
         if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
             local |= {id(n) for n in ast.walk(fn) if isinstance(n, ast.Import | ast.ImportFrom)}
+        elif isinstance(fn, ast.If) and ast.unparse(fn.test) == "TYPE_CHECKING":
+            typing_only |= {id(n) for n in ast.walk(fn)}
     for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             for alias in node.names:
                 yield alias.name, node.lineno, id(node) in local

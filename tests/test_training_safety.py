@@ -22,14 +22,13 @@ from conftest import alive, children, default_sigint, wait_gone
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.learned.config import load_config
 from mpa_gym.agents.learned.policies import load_run
-from mpa_gym.agents.training.train import (
-    TrainingStopped,
+from mpa_gym.agents.learned.runs import (
     latest_state,
     read_eval_history,
-    train,
     write_eval_history,
     zip_timesteps,
 )
+from mpa_gym.agents.training.train import TrainingStopped, train
 from stable_baselines3 import PPO
 
 EV = {"name": "ev", "duration_s": 0.5}

@@ -38,6 +38,13 @@ _RECORDED = {"t": "t_s", "x": "x_m", "x_ref": "x_ref_m", "k": "k_N_per_m",
              "pressure_cmd_bar": "pressure_cmd_bar", "safety": "safety"}
 
 
+def eval_task(run_cfg: Any = None) -> dict[str, Any]:
+    """The task settings a controller is evaluated with: a learned policy's own (control
+    period, limits, residual scale) if it has a run config; the scenario's duration rules."""
+    task = (run_cfg.env_kwargs.get("task") if run_cfg is not None else None) or {}
+    return {k: v for k, v in task.items() if k != "episode_s"}
+
+
 def metric_window(n_steps: int, steps_per_period: int) -> slice:
     """The samples metrics are taken over: the last ``METRIC_PERIODS`` periods of ``n_steps``
     (all of them if the episode is shorter)."""

@@ -33,18 +33,32 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
-from mpa_gym.agents.controllers.baselines import BASELINES, Policy, stack
+from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
 from mpa_gym.agents.evaluation.episodes import (
     RECOVERY_BAND_M,
     Job,
     Trace,
+    eval_task,
     metrics,
     run_episode,
     run_episodes,
 )
-from mpa_gym.agents.evaluation.seeds import group_runs, require_stats
+from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
+from mpa_gym.agents.evaluation.robustness import no_harm, no_harm_markdown
+from mpa_gym.agents.evaluation.robustness import plot as robustness_plot
+from mpa_gym.agents.evaluation.robustness import robustness as sweep
+from mpa_gym.agents.evaluation.seeds import (
+    aggregate,
+    group_label,
+    group_runs,
+    learning_curves,
+    plot_curves,
+    require_stats,
+)
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.learned.runs import read_eval_history
+from mpa_gym.agents.worker import Worker, WorkerStopped
 
 import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
@@ -53,18 +67,6 @@ from mpa_gym.files import atomic_write_text
 PAPER_SCENARIOS = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch",
                    "load_1kg", "kmax", "kmin"]
 HELDOUT_SCENARIOS = ["heldout_a", "heldout_b", "heldout_c", "heldout_bladder"]
-
-
-def eval_task(run_cfg: Any = None) -> dict[str, Any]:
-    """The task settings a controller is evaluated with: a learned policy's own (control
-    period, limits, residual scale) if it has a run config; the scenario's duration rules."""
-    task = (run_cfg.env_kwargs.get("task") if run_cfg is not None else None) or {}
-    return {k: v for k, v in task.items() if k != "episode_s"}
-
-
-def make_env(env_id: str, scenario: Any, run_cfg: Any = None) -> gym.Env:
-    """The single env a controller is evaluated in (:func:`eval_task`)."""
-    return gym.make(env_id, scenario=scenario, task=eval_task(run_cfg))
 
 
 def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
@@ -103,10 +105,8 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
             swept.cancel()
             raise
     if robustness:
-        from mpa_gym.agents.evaluation.robustness import robustness as sweep
 
         report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
-    from mpa_gym.agents.evaluation.robustness import no_harm
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [_label(p) for p in policies if p not in BASELINES])
@@ -156,7 +156,6 @@ class Background:
     hangs)."""
 
     def __init__(self, what: str, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
-        from mpa_gym.agents.worker import Worker
 
         self._worker = Worker()
         self._what, self._fn, self._args, self._kwargs = what, fn, args, kwargs
@@ -166,7 +165,6 @@ class Background:
         """Wait for the call, raise its error if it failed, and reap the worker. If the worker
         exited before it answered (it died, or could not start), the call runs in this process,
         and it is said. A Ctrl-C while waiting stops the worker."""
-        from mpa_gym.agents.worker import WorkerStopped
 
         try:
             return self._worker.result(self._call)
@@ -188,7 +186,6 @@ def sweep_in_background(policies: list[str], **kwargs: Any) -> Background | None
     core."""
     if len(os.sched_getaffinity(0)) < 2:
         return None
-    from mpa_gym.agents.evaluation.robustness import robustness as sweep
 
     return Background("the robustness sweep", sweep, policies, **kwargs)
 
@@ -198,7 +195,6 @@ def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, A
     scenario the IQM of each metric and its 95 % stratified-bootstrap CI over the runs, and the
     aggregate learning curves (:mod:`mpa_gym.agents.evaluation.seeds`). A lone run of its config is
     in no group."""
-    from mpa_gym.agents.evaluation.seeds import aggregate, group_label, learning_curves
 
     out: dict[str, Any] = {}
     for runs in groups:
@@ -213,8 +209,6 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
     """For each run folder: the env steps its held-out evaluations took to reach the
     feedforward's position RMSE on ``scenario`` (default ``heldout_b``, the held-out plant
     under an unknown 0.8 kg load; the feedforward is measured in this same report)."""
-    from mpa_gym.agents.training.train import read_eval_history
-
     ff = results.get(scenario, {}).get("ff")
     out: dict[str, Any] = {}
     for spec in policies:
@@ -236,15 +230,12 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
 
 def tuned_on(spec: str) -> str:
     """What a controller was tuned or trained on, for the report."""
-    from mpa_gym.agents.controllers.baselines import TUNED_ON
 
     if spec in TUNED_ON:
         return TUNED_ON[spec]
     if Path(spec).is_dir():
-        from mpa_gym.agents.learned.policies import load_policy
 
         policy, _, cfg = load_policy(spec)
-        from mpa_gym.analysis.scenario import load_scenario
 
         rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
         steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
@@ -339,11 +330,9 @@ def markdown(report: dict[str, Any]) -> str:
                        f"{'not within the run' if steps is None else steps} | {curve} |")
         out.append("")
     if report.get("robustness"):
-        from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
 
         out += robustness_markdown(report["robustness"])
     if report.get("no_harm"):
-        from mpa_gym.agents.evaluation.robustness import no_harm_markdown
 
         out += no_harm_markdown(report["no_harm"])
     return "\n".join(out)
@@ -392,7 +381,6 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
-        from mpa_gym.agents.evaluation.robustness import plot as robustness_plot
 
         data["robustness"] = _finite(report["robustness"])
         plots += robustness_plot(report["robustness"], out / "plots")
@@ -400,7 +388,6 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
     atomic_write_text(out / "report.md", markdown(report))
     curves = {g: v["curves"] for g, v in (report.get("groups") or {}).items() if v["curves"]}
     if curves:
-        from mpa_gym.agents.evaluation.seeds import plot_curves
 
         plots.append(plot_curves(curves, out / "plots" / "learning_curves.png"))
     return {"json": out / "report.json", "markdown": out / "report.md",

@@ -40,11 +40,11 @@ from mpa_gym.agents.controllers.supervisor import take_over_times
 from mpa_gym.agents.evaluation.episodes import (
     METRIC_PERIODS,
     Job,
+    eval_task,
     metric_window,
     recovery_s,
     run_episodes,
 )
-from mpa_gym.agents.evaluation.evaluate import eval_task
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import load_policy
 

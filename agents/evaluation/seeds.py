@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from mpa_gym.agents.learned.config import DEFAULT_CONFIG
 
 BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it
 CI = 0.95
@@ -54,7 +55,6 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
     if any(s < 0 for s in seeds):
         raise ValueError(f"--seeds={seeds}: seeds must be >= 0")
-    from mpa_gym.agents.learned.config import DEFAULT_CONFIG
 
     config = Path(config or DEFAULT_CONFIG)
     base = Path(run_dir) if run_dir else Path("runs") / config.stem

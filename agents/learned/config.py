@@ -36,11 +36,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mpa_gym.agents.controllers.supervisor import SupervisorSpec
+from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec
 from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
 
 import mpa_gym  # noqa: F401  (registers the env ids)
+from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.envs.leg_env import make_plans, task_config
 from mpa_gym.files import read_yaml
-from mpa_gym.model.params import check_keys
+from mpa_gym.model.params import DEFAULT_PARAMS, check_keys
 
 ZOO_KEYS = {"n_envs", "n_timesteps", "policy", "normalize", "policy_kwargs", "env_kwargs",
             "env_wrapper"}
@@ -134,7 +138,6 @@ class TrainConfig:
             raise ConfigError(f"{h}.eval_scenarios={self.eval_scenarios!r} must be a list of "
                               "scenario names, paths or mappings")
         if self.supervisor is not None:
-            from mpa_gym.agents.controllers.supervisor import SupervisorSpec
 
             try:
                 self.supervisor = SupervisorSpec.from_config(self.supervisor)
@@ -145,7 +148,6 @@ class TrainConfig:
         if self.anchor_at_rest and not (self.observation_wrapper or {}).get("errors_only"):
             raise ConfigError(f"{h}.anchor_at_rest=true needs {OBS_WRAPPER} with errors_only: "
                               "true (the features are then all zero while tracking is exact)")
-        from mpa_gym.analysis.scenario import load_scenario
 
         for i, sc in enumerate(self.eval_scenarios):
             try:
@@ -272,8 +274,6 @@ def _check_ppo(p: dict[str, Any], n_envs: int, where: str) -> None:
 def _check_env_kwargs(ek: dict[str, Any], where: str) -> None:
     """The env's scenario, stiffness target and task settings, checked by building its plan (as
     the env will) before any env, model or run folder exists."""
-    from mpa_gym.envs.leg_env import make_plans, task_config
-    from mpa_gym.model.params import DEFAULT_PARAMS
 
     try:
         make_plans(ek.get("scenario", "nominal"), ek.get("stiffness"), task_config(ek.get("task")),
@@ -326,7 +326,6 @@ def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str) -> None:
     """A wrapper's kwargs, checked by the wrapper's own validation."""
     import dataclasses
 
-    from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec
 
     if not isinstance(kwargs, dict):
         raise ConfigError(f"{where}: {name}: kwargs {kwargs!r} must be a mapping")

@@ -10,13 +10,17 @@ from typing import Any
 
 import numpy as np
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
-from mpa_gym.agents.learned.config import TrainConfig
+from mpa_gym.agents.controllers.excite import ExcitePolicy
+from mpa_gym.agents.controllers.supervisor import Supervised
+from mpa_gym.agents.learned.config import TrainConfig, load_config
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
 from mpa_gym.agents.learned.inference import DeployedPolicy
 
+from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.contract import obs_names
+from mpa_gym.task.plan import make_plan
 
 
 class LearnedPolicy:
@@ -134,7 +138,6 @@ def _load_learned(run: str, which: str, stamp: tuple[Any, ...]) -> tuple[Any, An
 
 def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any]:
     import torch
-    from mpa_gym.agents.learned.config import load_config
     from stable_baselines3.common.vec_env import VecNormalize
 
     # one small MLP per step: a thread pool only adds latency (and competes with the rig's loop)
@@ -244,9 +247,7 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     (``mpa_gym.agents.controllers.supervisor``): the fallback baseline is built for the env of
     ``env_kwargs`` (scenario, stiffness; task settings over the run's own), else for the run's
     training env."""
-    from mpa_gym.agents.controllers.supervisor import Supervised
 
-    from mpa_gym.analysis.scenario import load_scenario
 
     own, given = cfg.env_kwargs, env_kwargs or {}
     task = {**(own.get("task") or {}), **(given.get("task") or {})}
@@ -272,9 +273,7 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     rollout's ``--control-hz``) other than its training one.
     """
     if spec == "excite":  # system-identification excitation (mpa_gym.agents.controllers.excite)
-        from mpa_gym.agents.controllers.excite import ExcitePolicy
 
-        from mpa_gym.task.plan import make_plan
 
         kw = env_kwargs or {}
         return (ExcitePolicy(make_plan(kw.get("scenario", "nominal"), kw.get("stiffness"),
@@ -287,7 +286,6 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     if Path(spec).is_dir():
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
         if dt is not None and (Path(spec) / "config.yaml").is_file():
-            from mpa_gym.agents.learned.config import load_config
 
             check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
         policy, cfg = load_run(spec, deployed=deployed)

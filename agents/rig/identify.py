@@ -48,10 +48,11 @@ from typing import Any
 
 import numba
 import numpy as np
+from mpa_gym.agents.rig.rollout import read_log
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
-from mpa_gym.analysis.scenario import Plant, Scenario, load_scenario
+from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE, Plant, Scenario, load_scenario
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 
@@ -115,7 +116,6 @@ def read_sessions(path: str | Path) -> Sessions:
     """The sessions of a rollout log, oldest first. ``mpa_gym.agents.rig.rollout`` appends to its
     log and starts each session with a header, and episodes are numbered from 0 in each: the header,
     not the episode number, is where one session's steps end and the next one's begin."""
-    from mpa_gym.agents.rig.rollout import read_log
 
     path = Path(path)
     if not path.is_file():
@@ -501,7 +501,6 @@ def write_scenario(out: str | Path, base: Scenario, plant: dict[str, float],
     ``randomize`` spanning ± ``sigmas`` standard deviations (inside each field's range)."""
     import yaml
 
-    from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE
 
     d = base.to_dict()
     d["name"] = Path(out).stem

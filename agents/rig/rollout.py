@@ -37,14 +37,17 @@ from mpa_gym.agents.controllers.supervisor import FALLBACK, POLICY, took_over
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
 from mpa_gym.agents.learned.policies import load_policy
 
+from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.env import (
     CONTROL_HZ,
     CONTROL_HZ_RANGE,
     SPIN_S,
     HardwareFault,
     HardwareLegEnv,
+    wait_s,
 )
 from mpa_gym.hardware.realtime import realtime as rt_context
+from mpa_gym.hardware.transport import UDPServer
 from mpa_gym.model.params import BAR, check_range
 from mpa_gym.task.config import END_STOPS_M
 from mpa_gym.task.contract import SAFETY_CLIPPED
@@ -270,8 +273,6 @@ def wait_floor(control_hz: float, duration_s: float, spin_s: float = SPIN_S
     ``HardwareLegEnv`` (the same link read, ``mpa_gym.hardware.env.wait_s``) on a loopback
     socket that nothing sends to, with no work between deadlines. Its overrun fraction is what
     no loop can beat on this machine at this moment."""
-    from mpa_gym.hardware.env import wait_s
-    from mpa_gym.hardware.transport import UDPServer
 
     dt = 1.0 / control_hz
     late = np.empty(max(1, round(duration_s * control_hz)))
@@ -299,7 +300,6 @@ def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 
     median command latency."""
     import tempfile
 
-    from mpa_gym.hardware.emulator import EmulatorProcess
 
     check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
     check_range("--loop-s", loop_s, 1.0, 600.0, unit="s")

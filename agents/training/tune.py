@@ -66,6 +66,7 @@ from typing import Any
 
 import optuna
 import yaml
+from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
 from mpa_gym.agents.learned.config import (
     ACTION_WRAPPER,
     DEFAULT_CONFIG,
@@ -74,6 +75,7 @@ from mpa_gym.agents.learned.config import (
     _literal,
     parse_config,
 )
+from mpa_gym.agents.training.train import train
 from optuna.exceptions import ExperimentalWarning
 from optuna.trial import TrialState
 
@@ -350,8 +352,6 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
                    worker: str, heldout: list[Any] | None = None
                    ) -> Callable[[optuna.Trial], Any]:
     """The Optuna objective: train each seed, evaluate on the held-out plants, aggregate."""
-    from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
-    from mpa_gym.agents.training.train import train
 
     space = parse_space(study_space(data))
     env_id = next(k for k in data if k != "mpa_gym")

@@ -7,6 +7,7 @@ from typing import Any, ClassVar
 import gymnasium as gym
 import numpy as np
 
+from mpa_gym.envs.rendering import LegRenderer
 from mpa_gym.envs.sim import SimEngine
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
 from mpa_gym.task.config import TaskConfig
@@ -184,7 +185,6 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
             gym.logger.warn("render() called without a render_mode; pass render_mode="
                             "'rgb_array' or 'human' to gymnasium.make")
             return None
-        from mpa_gym.envs.rendering import LegRenderer
 
         if self._renderer is None:
             self._renderer = LegRenderer(self.engine.params, self.cfg.p_max_bar,

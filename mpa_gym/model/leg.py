@@ -8,10 +8,12 @@ Every function takes a float or a numpy array (broadcast) of X.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
-from mpa_gym.model.params import LegParams, MPAParams
 from mpa_gym.model.xp import Array, acos, sqrt
+
+if TYPE_CHECKING:  # annotations only: params imports this module (β0 = β(x_rest))
+    from mpa_gym.model.params import LegParams, MPAParams
 
 
 def _cos_beta(X: Array, leg: LegParams) -> Array:

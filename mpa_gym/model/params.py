@@ -13,6 +13,8 @@ from dataclasses import dataclass, field, fields
 from functools import cached_property
 from typing import Any
 
+from mpa_gym.model.leg import flexor_path, knee_angle
+
 BAR = 1.0e5  # [Pa] one bar; pressures are shown in bar at the edges only
 
 
@@ -152,14 +154,12 @@ class LegParams:
     @cached_property
     def beta0(self) -> float:
         """[rad] β0 = β(x_rest), Eq. (9) (assumption, DESIGN.md)."""
-        from mpa_gym.model.leg import knee_angle
 
         return float(knee_angle(self.x_rest, self))
 
     @cached_property
     def l_mf0(self) -> float:
         """[m] l_Mf0 = l_Mf(β0), Eq. (10) (assumption, DESIGN.md)."""
-        from mpa_gym.model.leg import flexor_path
 
         return float(flexor_path(self.x_rest, self))
 

@@ -1,0 +1,209 @@
+"""The run folder: what ``mpa-gym train`` writes and every loader reads.
+
+A run folder holds ``config.yaml`` (the resolved config), ``model.zip`` + ``vecnormalize.pkl``
+(the final state), ``checkpoints/`` (``ppo_<N>_steps.zip`` + ``ppo_vecnormalize_<N>_steps.pkl``
+and, written last, ``ppo_<N>_steps.json``: the step count and the files' sizes, so only a
+checkpoint with its marker is complete), ``eval/evaluations.{npz,json}`` (the held-out
+evaluations during training), ``best/`` and ``tb/``. Every file is written atomically
+(``mpa_gym.files``): a kill leaves the old complete file or the new one.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mpa_gym.agents.learned.anchor import rest_for_save
+
+from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
+
+EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
+
+
+def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
+    """The model (anchored at its normaliser's zero,
+    ``mpa_gym.agents.learned.anchor.rest_for_save``) and its normaliser, each written atomically."""
+    with rest_for_save(model):
+        atomic_save(model_path, model.save)
+    norm = model.get_vec_normalize_env()
+    if norm is not None and norm_path is not None:
+        atomic_save(norm_path, lambda f: pickle.dump(norm, f))
+
+
+def checkpoint_paths(run: Path, steps: int) -> dict[str, Path]:
+    d = run / "checkpoints"
+    return {"model": d / f"ppo_{steps}_steps.zip",
+            "normalizer": d / f"ppo_vecnormalize_{steps}_steps.pkl",
+            "marker": d / f"ppo_{steps}_steps.json"}
+
+
+def write_checkpoint(model: Any, run: Path) -> Path:
+    """A complete checkpoint at the model's step count: model, normaliser, then the marker
+    (written last, so a checkpoint without it was torn by a kill and is ignored)."""
+    steps = int(model.num_timesteps)
+    p = checkpoint_paths(run, steps)
+    has_norm = model.get_vec_normalize_env() is not None
+    save_state(model, p["model"], p["normalizer"])
+    files = {p["model"].name: p["model"].stat().st_size}
+    if has_norm:
+        files[p["normalizer"].name] = p["normalizer"].stat().st_size
+    atomic_write_text(p["marker"], json.dumps({"timesteps": steps, "files": files}))
+    return p["model"]
+
+
+def save_final(model: Any, run: Path) -> None:
+    """A checkpoint at the current step count, then ``model.zip`` + ``vecnormalize.pkl``."""
+    write_checkpoint(model, run)
+    save_state(model, run / "model.zip", run / "vecnormalize.pkl")
+
+
+def zip_timesteps(path: Path) -> int:
+    """The step count stored in an SB3 model file (without building the model)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return int(json.loads(z.read("data"))["num_timesteps"])
+    except (zipfile.BadZipFile, KeyError, ValueError, OSError) as e:
+        raise DamagedFileError(f"{path} is damaged (not a complete SB3 model file: {e})"
+                               ) from None
+
+
+def checked_checkpoint(marker: Path) -> int:
+    """The step count of the checkpoint whose marker is ``marker``, after checking its files'
+    sizes; raises (ValueError, KeyError, TypeError, OSError) if it is incomplete or damaged."""
+    meta = json.loads(marker.read_text())
+    steps = int(meta["timesteps"])
+    for name, size in meta["files"].items():
+        if (marker.parent / name).stat().st_size != size:
+            raise ValueError(f"{name} has the wrong size")
+    return steps
+
+
+def latest_state(run: Path, normalized: bool) -> tuple[int, Path, Path | None, list[str]] | None:
+    """The newest complete state of a run: (steps, model file, normaliser file, notes) or None.
+
+    Candidates are the complete checkpoints and ``model.zip`` (+ ``vecnormalize.pkl``); a damaged
+    or incomplete one is skipped and named in the notes."""
+    notes: list[str] = []
+    cands: list[tuple[int, Path, Path | None]] = []
+    for marker in (run / "checkpoints").glob("ppo_*_steps.json"):
+        try:
+            steps = checked_checkpoint(marker)
+        except (ValueError, KeyError, TypeError, OSError) as e:
+            notes.append(f"skipped damaged checkpoint {marker.name} ({e})")
+            continue
+        p = checkpoint_paths(run, steps)
+        cands.append((steps, p["model"], p["normalizer"] if normalized else None))
+    root = run / "model.zip"
+    if root.is_file():
+        try:
+            norm = run / "vecnormalize.pkl" if normalized else None
+            if norm is not None and not norm.is_file():
+                raise DamagedFileError(f"{norm} is missing")
+            cands.append((zip_timesteps(root), root, norm))
+        except DamagedFileError as e:
+            notes.append(f"skipped model.zip ({e})")
+    if not cands:
+        return None
+    # newest first; at equal step counts a checkpoint and model.zip hold the same state
+    steps, model, norm = max(cands, key=lambda c: (c[0], c[1] != root))
+    if root.is_file() and model != root:
+        try:
+            root_steps = zip_timesteps(root)
+        except DamagedFileError:
+            root_steps = -1
+        if root_steps > steps:
+            notes.append(f"model.zip ({root_steps} steps) is newer but unusable; rewinding to "
+                         f"{steps} steps")
+    return steps, model, norm, notes
+
+
+def read_eval_history(folder: Path) -> tuple[list[dict[str, Any]], list[int], list[list[float]],
+                                             list[list[int]]]:
+    """(history, timesteps, returns, lengths) of ``eval/``; a damaged file is named."""
+    jpath, npath = folder / EVAL_JSON, folder / EVAL_NPZ
+    try:
+        history = json.loads(jpath.read_text())
+        if not isinstance(history, list):
+            raise ValueError("not a list of evaluations")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise DamagedFileError(f"{jpath} is damaged (not a JSON list of evaluations: {e}); "
+                               "delete it (and evaluations.npz) to start the history afresh"
+                               ) from None
+    if not npath.is_file():
+        return history, [], [], []
+    try:
+        with np.load(npath) as npz:
+            ts = [int(t) for t in npz["timesteps"]]
+            res = [list(map(float, r)) for r in npz["results"]]
+            lens = [list(map(int, r)) for r in npz["ep_lengths"]]
+    except Exception as e:  # zipfile, pickle and numpy's own errors: all mean "damaged"
+        raise DamagedFileError(f"{npath} is damaged ({type(e).__name__}: {e}); delete it (and "
+                               "evaluations.json) to start the history afresh") from None
+    return history, ts, res, lens
+
+
+def write_eval_history(folder: Path, history: list[dict[str, Any]], ts: list[int],
+                       res: list[list[float]], lens: list[list[int]]) -> None:
+    atomic_save(folder / EVAL_NPZ, lambda f: np.savez(f, timesteps=np.array(ts, dtype=np.int64),
+                                                      results=np.array(res),
+                                                      ep_lengths=np.array(lens)))
+    atomic_write_text(folder / EVAL_JSON, json.dumps(history, indent=1))
+
+
+def cut_eval_history(folder: Path, steps: int) -> int:
+    """Drop the evaluations after ``steps`` (made by a run later killed); returns how many."""
+    if not (folder / EVAL_JSON).is_file():
+        return 0
+    history, ts, res, lens = read_eval_history(folder)
+    keep = [i for i, t in enumerate(ts) if t <= steps]
+    kept_hist = [h for h in history if int(h.get("timesteps", 0)) <= steps]
+    dropped = len(history) - len(kept_hist)
+    if dropped or len(keep) != len(ts):
+        write_eval_history(folder, kept_hist, [ts[i] for i in keep], [res[i] for i in keep],
+                           [lens[i] for i in keep])
+    return dropped
+
+
+def reconcile_best(run: Path, steps: int, normalized: bool) -> str | None:
+    """After a resume cut the evaluation history back to ``steps``: a ``best/`` saved by a
+    dropped evaluation belongs to the discarded timeline. It is re-derived from the checkpoint
+    at the best kept evaluation where there is one (EvalCallback keeps the first best), else
+    removed (the next evaluation writes a new one). Returns what was done, or None."""
+    best = run / "best" / "best_model.zip"
+    if not best.is_file():
+        return None
+    try:
+        best_steps = zip_timesteps(best)
+    except DamagedFileError:
+        best_steps = -1
+    if 0 <= best_steps <= steps:
+        return None
+    was = (f"best/ was saved at step {best_steps} by an evaluation after step {steps}, dropped "
+           "with the interrupted run" if best_steps >= 0 else "best/best_model.zip is damaged")
+    _, ts, res, _ = (read_eval_history(run / "eval") if (run / "eval" / EVAL_JSON).is_file()
+                     else ([], [], [], []))
+    norm = run / "best" / "vecnormalize.pkl"
+    best.unlink()  # the model goes first and comes back last: a kill leaves no mixed pair
+    norm.unlink(missing_ok=True)
+    if res:
+        i = int(np.argmax([np.mean(r) for r in res]))
+        ck = checkpoint_paths(run, ts[i])
+        try:
+            complete = checked_checkpoint(ck["marker"]) == ts[i]
+        except (ValueError, KeyError, TypeError, OSError):
+            complete = False
+        if complete:
+            if normalized:
+                atomic_save(norm, lambda f: f.write(ck["normalizer"].read_bytes()))
+            atomic_save(best, lambda f: f.write(ck["model"].read_bytes()))
+            return (f"{was}: re-derived it from {ck['model'].relative_to(run)}, the best kept "
+                    f"evaluation (step {ts[i]}, mean return {np.mean(res[i]):.4g})")
+    return (f"{was}: removed it (no checkpoint at the best kept evaluation); the next "
+            "evaluation writes a new one")
+
+
+# ----------------------------------------------------------------------------- callbacks
