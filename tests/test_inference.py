@@ -8,12 +8,14 @@ order around the network)."""
 
 from __future__ import annotations
 
+import shutil
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
 from mpa_gym.agents.learned.inference import DeployedPolicy
-from mpa_gym.agents.learned.policies import LearnedPolicy, load_run
+from mpa_gym.agents.learned.policies import LearnedPolicy, load_policy, load_run
 from mpa_gym.agents.training.train import train
 
 import mpa_gym  # noqa: F401
@@ -184,3 +186,33 @@ def test_both_policies_check_the_estimator_setting():
         with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
             make(3.0, None)
         make(3.0)
+
+
+def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_path):
+    # run folders written before the app moved into mpa_gym.agents name the wrappers
+    # agents.wrappers.… and give the supervisor in its flat form (the default config's levels);
+    # such a folder loads, supervised and not, and acts exactly as today's
+    old = tmp_path / "old_run"
+    shutil.copytree(tiny_run, old)
+    cfg = yaml.safe_load((old / "config.yaml").read_text())
+    text = yaml.safe_dump(cfg).replace("mpa_gym.agents.learned.wrappers.", "agents.wrappers.")
+    cfg = yaml.safe_load(text)
+    cfg["mpa_gym"]["supervisor"] = {"fallback": "pid", "aperiodic_mm": 0.4,
+                                    "aperiodic_clip_mm": 0.5, "persistent_mm": 2.0,
+                                    "persistent_clip_mm": 3.0, "last_resort": "afc"}
+    (old / "config.yaml").write_text(yaml.safe_dump(cfg))
+    assert "agents.wrappers.TrackingErrorObservation" in (old / "config.yaml").read_text()
+    env = gym.make("MPALegResidual-v0", scenario="heldout_a")
+    obs = np.stack([env.reset(seed=s)[0] for s in range(6)])
+    obs[:, 0] += np.linspace(-0.01, 0.01, 6)  # off the reference: the features are not zero
+    now, _, cfg_now = load_policy(str(tiny_run))
+    then, _, cfg_then = load_policy(str(old))
+    assert cfg_now.observation_wrapper == cfg_then.observation_wrapper
+    assert cfg_now.action_wrapper == cfg_then.action_wrapper
+    assert cfg_now.supervisor == cfg_then.supervisor
+    state_now = state_then = None
+    for k in range(400):  # long enough for the supervisor's monitors to arm and trip
+        start = np.full(6, k == 0)
+        a, state_now = now.predict(obs, state_now, start)
+        b, state_then = then.predict(obs, state_then, start)
+        np.testing.assert_array_equal(a, b)

@@ -60,6 +60,10 @@ ENV_IDS = ("MPALeg-v0", "MPALegResidual-v0")
 OBS_WRAPPER = "mpa_gym.agents.learned.wrappers.TrackingErrorObservation"
 ACTION_WRAPPER = "mpa_gym.agents.learned.wrappers.ForceStiffnessAction"
 WRAPPERS = (OBS_WRAPPER, ACTION_WRAPPER)
+# the names configs and run folders written before 0.2.0 give the wrappers (the app was then a
+# top-level ``agents`` package); a config that uses them loads as if it gave today's names
+LEGACY_WRAPPERS = {"agents.wrappers.TrackingErrorObservation": OBS_WRAPPER,
+                   "agents.wrappers.ForceStiffnessAction": ACTION_WRAPPER}
 # the default training config: `mpa-gym train`, `tune` and `tune-baselines` without --config
 DEFAULT_CONFIG = DEFAULT_TRAIN_CONFIG
 EVAL_SEED = 1_000_000  # first seed of evaluation episodes: no training env draws seeds this high
@@ -353,6 +357,9 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
     if len(ids) != 1:
         raise ConfigError(f"{source}: needs exactly one env id key of {list(ENV_IDS)}, got {ids}")
     env_id = ids[0]
+    if isinstance(data[env_id], dict) and data[env_id].get("env_wrapper") is not None:
+        data = {**data, env_id: {**data[env_id], "env_wrapper": _current_names(
+            data[env_id]["env_wrapper"])}}
     hp = data[env_id]
     if not isinstance(hp, dict):
         raise ConfigError(f"{source}: {env_id} must be a mapping of hyper-parameters")
@@ -393,6 +400,19 @@ def parse_config(data: Any, source: str = "config") -> TrainConfig:
         ppo_kwargs={k: hp[k] for k in PPO_KEYS if k in hp},
         observation_wrapper=wrappers.get(OBS_WRAPPER), action_wrapper=wrappers.get(ACTION_WRAPPER),
         raw=copy.deepcopy(data), source=source, **harness)
+
+
+def _current_names(spec: Any) -> Any:
+    """rl-zoo's ``env_wrapper`` with the names of ``LEGACY_WRAPPERS`` replaced by today's."""
+    def rename(item: Any) -> Any:
+        if isinstance(item, str):
+            return LEGACY_WRAPPERS.get(item, item)
+        if isinstance(item, dict) and len(item) == 1:
+            ((name, kwargs),) = item.items()
+            return {LEGACY_WRAPPERS.get(name, name) if isinstance(name, str) else name: kwargs}
+        return item
+
+    return [rename(i) for i in spec] if isinstance(spec, list) else rename(spec)
 
 
 def _wrappers(spec: Any, where: str) -> dict[str, Any]:
