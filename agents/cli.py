@@ -1,4 +1,4 @@
-"""The `mpa-gym` command: design, analyze, simulate and figures (DESIGN.md's CLI contract).
+"""The `mpa-gym` command (docs/design.md#cli): the paper's tools, training, evaluation and the rig.
 
 Every subcommand prints a readable table by default and one JSON object with ``--json``.
 SI units in JSON unless a key says ``_bar``; pressures are given and shown in bar.
@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+import mpa_gym
 from mpa_gym.analysis.scenario import Inputs
 from mpa_gym.design import FeedforwardDesign, Reference, feasible_stiffness_range
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
@@ -28,6 +29,11 @@ REFERENCE, INPUTS = Reference(), Inputs()
 FLAG_FIELDS = {"--x0": "reference.x0_m", "--amp": "reference.amp_m",
                "--period": "reference.period_s", "--pf-mean": "inputs.pf_mean_bar",
                "--pf-amp": "inputs.pf_amp_bar", "--p-max": "inputs.p_max_bar"}
+
+# the optional dependencies a subcommand may need, and the extra (pyproject.toml) that brings each
+EXTRAS = {"torch": "train", "stable_baselines3": "train", "optuna": "train",
+          "tensorboard": "train", "tqdm": "train", "rich": "train", "rliable": "stats",
+          "psycopg2": "postgres"}
 
 PERIOD_MAX_S = 60.0  # [s] longest reference period the CLI accepts (20 × the paper's 3 s)
 
@@ -519,7 +525,10 @@ def show_identify(o: dict[str, Any]) -> str:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="mpa-gym",
-        description="McKibben-actuated leg: analytic design, stability analysis, simulation.")
+        description="McKibben-actuated leg: analytic design, stability analysis, simulation, "
+                    "training, evaluation and the rig.")
+    parser.add_argument("--version", action="version",
+                        version=f"mpa-gym {mpa_gym.__version__} (Python {sys.version.split()[0]})")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add(name: str, help_: str, run: Any, show: Any) -> argparse.ArgumentParser:
@@ -723,6 +732,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         out = a.run(a)
+    except ModuleNotFoundError as e:
+        if e.name is None or e.name.split(".")[0] not in EXTRAS:
+            raise
+        extra = EXTRAS[e.name.split(".")[0]]
+        print(f"mpa-gym {a.command}: error: needs {e.name.split('.')[0]}, which the "
+              f"'{extra}' extra installs: pip install 'mpa-gym[{extra}]'", file=sys.stderr)
+        return 2
     except (ValueError, FileNotFoundError) as e:  # bad input: names the field, value and range
         print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)
         return 2

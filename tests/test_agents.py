@@ -10,6 +10,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.evaluation.episodes import metrics, run_episode
 from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
@@ -22,8 +24,6 @@ from mpa_gym.agents.learned.wrappers import (
     TrackingErrorVectorObservation,
 )
 from mpa_gym.agents.training.train import train
-
-import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.task.contract import OBS_V as OV
 from mpa_gym.task.contract import OBS_VREF as OVR
@@ -302,7 +302,6 @@ def test_adaptive_feedforward_follows_its_averaged_law():
     # averaging's ripple (the products at 2ω₀, of relative size T / (2π τ) = 8 %) bounds the
     # agreement at 15 %.
     from mpa_gym.agents.controllers.baselines import AdaptiveFeedforward
-
     from mpa_gym.task.contract import OBS_COS, OBS_KREF, OBS_KREF_SCALE, OBS_SIN
 
     afc = make_baseline("afc")

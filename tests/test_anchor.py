@@ -7,6 +7,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.evaluation.episodes import Job, run_episodes
 from mpa_gym.agents.learned.anchor import RestAnchoredPolicy, set_rest
 from mpa_gym.agents.learned.config import ConfigError, parse_config
@@ -18,8 +20,6 @@ from mpa_gym.agents.learned.wrappers import (
     TrackingErrorObservation,
 )
 from mpa_gym.agents.training.train import train
-
-import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 
 FEATURES = {"errors_only": True, "harmonics": 1, "remodulate": True, "previous_action": True}

@@ -9,8 +9,8 @@ import sys
 
 import numpy as np
 import pytest
-from mpa_gym.agents.cli import main
 
+from mpa_gym.agents.cli import main
 from mpa_gym.design import FeedforwardDesign, Reference, mode_pattern
 from mpa_gym.model.params import BAR
 

@@ -12,9 +12,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from conftest import REALTIME, serving
-from mpa_gym.agents.rig.rollout import read_log
 
 import mpa_gym  # noqa: F401
+from mpa_gym.agents.rig.rollout import read_log
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.emulator import LinkFaults
 from mpa_gym.hardware.env import HardwareLegEnv

@@ -11,10 +11,12 @@ import subprocess
 import sys
 
 import gymnasium as gym
-import mpa_gym.agents.rig.rollout
 import numpy as np
 import pytest
 from conftest import REALTIME
+
+import mpa_gym
+import mpa_gym.agents.rig.rollout
 from mpa_gym.agents.controllers.excite import ExciteConfig
 from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.agents.rig.identify import (
@@ -27,8 +29,6 @@ from mpa_gym.agents.rig.identify import (
     simulate_pressure,
 )
 from mpa_gym.agents.rig.rollout import rollout
-
-import mpa_gym
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.model import dynamics

@@ -14,11 +14,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.policies import LearnedPolicy, load_policy, load_run
 from mpa_gym.agents.training.train import train
-
-import mpa_gym  # noqa: F401
 
 # SB3 runs the normaliser's output and the network in float32, the deployed path in float64:
 # the actions differ by float32 rounding through the 64-wide layers (~1e-7 of O(1) values), far
@@ -149,8 +149,9 @@ def test_saved_model_acts_as_the_algorithm_ppo_load_rebuilds(tiny_run):
     # weights, rest point and actions must be those of SB3's PPO.load of the same file, bit for
     # bit, deterministic and sampled (same torch seed)
     import torch
-    from mpa_gym.agents.learned.policies import SavedModel
     from stable_baselines3 import PPO
+
+    from mpa_gym.agents.learned.policies import SavedModel
 
     ours = SavedModel.load(tiny_run / "model.zip")
     theirs = PPO.load(tiny_run / "model.zip", device="cpu")

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 import tomllib
-from mpa_gym.configs import CONFIG_DIR, DEFAULT_TRAIN_CONFIG
 
 import mpa_gym
 from mpa_gym.analysis.scenario import load_scenario, scenario_names
+from mpa_gym.configs import CONFIG_DIR, DEFAULT_TRAIN_CONFIG
 
 ROOT = Path(__file__).resolve().parents[1]
 # installed package -> the repository folder it is built from (pyproject's package-dir)

@@ -18,9 +18,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
-from mpa_gym.agents.cli import main
 
 import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 

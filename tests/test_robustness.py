@@ -8,6 +8,9 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
+from numpy.testing import assert_allclose
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.evaluation.episodes import metrics, run_episode
 from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
@@ -22,9 +25,6 @@ from mpa_gym.agents.evaluation.robustness import (
     run_batch,
     run_batches,
 )
-from numpy.testing import assert_allclose
-
-import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import Impulse, load_scenario
 
 SHORT = {"name": "short", "duration_s": 9.0}  # three periods: the metric window is the episode

@@ -15,11 +15,11 @@ import time
 import pytest
 import yaml
 from conftest import REALTIME, default_sigint, serving
+
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.agents.rig.rollout import read_log, rollout
 from mpa_gym.agents.training.train import train
-
 from mpa_gym.hardware.env import HardwareLegEnv
 
 pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME

@@ -251,7 +251,6 @@ def test_one_design_builder_serves_scenarios_plans_and_the_cli(capsys):
     import json
 
     from mpa_gym.agents.cli import main
-
     from mpa_gym.task.plan import stiffness_design
 
     sc = load_scenario("nominal")

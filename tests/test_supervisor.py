@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import yaml
 from conftest import REALTIME, serving
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
@@ -31,8 +33,6 @@ from mpa_gym.agents.evaluation.robustness import _scenario, cell_metrics, run_ba
 from mpa_gym.agents.learned.config import ConfigError, parse_config
 from mpa_gym.agents.rig.rollout import read_log, rollout
 from mpa_gym.agents.training.train import train
-
-import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.design.feedforward import affine_in_pressures
 from mpa_gym.model.params import check_range

@@ -19,6 +19,8 @@ import pytest
 import torch
 import yaml
 from conftest import alive, children, default_sigint, wait_gone
+from stable_baselines3 import PPO
+
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.learned.config import load_config
 from mpa_gym.agents.learned.policies import load_run
@@ -29,7 +31,6 @@ from mpa_gym.agents.learned.runs import (
     zip_timesteps,
 )
 from mpa_gym.agents.training.train import TrainingStopped, train
-from stable_baselines3 import PPO
 
 EV = {"name": "ev", "duration_s": 0.5}
 
@@ -364,7 +365,7 @@ def test_a_killed_worker_hands_its_evaluations_back(in_process_run, tmp_path, mo
                                                     capsys):
     """SIGKILL of the evaluation worker while its first evaluation is under way: training says
     so and evaluates that one and the rest itself; nothing is lost or changed."""
-    from mpa_gym.agents.training import train as tr
+    from mpa_gym.agents.training import callbacks as tr
 
     evaluate = tr.EvalWorker.evaluate
 
@@ -403,7 +404,7 @@ def test_a_killed_training_process_takes_its_worker_with_it(tmp_path):
 def test_the_worker_is_the_default_only_where_it_pays():
     from mpa_gym.agents.evaluation.seeds import cores
     from mpa_gym.agents.learned.config import DEFAULT_CONFIG
-    from mpa_gym.agents.training.train import eval_worker_pays
+    from mpa_gym.agents.training.callbacks import eval_worker_pays
 
     cfg = load_config(DEFAULT_CONFIG)
     assert eval_worker_pays(cfg, cfg.n_timesteps, None) == (cores() >= 2)

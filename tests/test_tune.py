@@ -19,6 +19,8 @@ import numpy as np
 import optuna
 import pytest
 import yaml
+from optuna.trial import TrialState
+
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.learned.config import ConfigError, load_config
 from mpa_gym.agents.training.tune import (
@@ -31,7 +33,6 @@ from mpa_gym.agents.training.tune import (
     tune,
     write_best,
 )
-from optuna.trial import TrialState
 
 ENV = "MPALegResidual-v0"
 
@@ -283,8 +284,9 @@ def test_journal_file_storage(tmp_path):
 # ------------------------------------------------------------------------ seeds and intervals
 
 def test_iqm_and_ci_match_an_independent_trimmed_mean():
-    from mpa_gym.agents.evaluation.seeds import iqm_ci
     from scipy.stats import trim_mean
+
+    from mpa_gym.agents.evaluation.seeds import iqm_ci
 
     rng = np.random.default_rng(0)
     scores = rng.lognormal(size=(8, 3))

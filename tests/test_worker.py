@@ -13,6 +13,7 @@ import time
 
 import pytest
 from conftest import alive, children, default_sigint, wait_gone
+
 from mpa_gym.agents.evaluation.evaluate import Background
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

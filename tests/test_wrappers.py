@@ -7,6 +7,8 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+
+import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.agents.learned.frontend import (
     ADAPT_VAR_M2,
     STATE,
@@ -22,8 +24,6 @@ from mpa_gym.agents.learned.wrappers import (
     TrackingErrorObservation,
     TrackingErrorVectorObservation,
 )
-
-import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.design import affine_in_pressures
 from mpa_gym.model.params import BAR
 

@@ -53,10 +53,10 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
 
-import mpa_gym.agents.controllers.baselines as baselines
 import numpy as np
-from mpa_gym.agents.controllers.baselines import BASELINES, Policy
 
+import mpa_gym.agents.controllers.baselines as baselines
+from mpa_gym.agents.controllers.baselines import BASELINES, Policy
 from mpa_gym.model.params import check_keys, check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR

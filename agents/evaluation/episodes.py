@@ -25,9 +25,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.supervisor import take_over_times, took_over
-
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
 METRIC_PERIODS = 3  # metrics are taken over the last three reference periods of an episode

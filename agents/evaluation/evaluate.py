@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+
+import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
 from mpa_gym.agents.evaluation.episodes import (
     RECOVERY_BAND_M,
@@ -59,8 +61,6 @@ from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.agents.learned.runs import read_eval_history
 from mpa_gym.agents.worker import Worker, WorkerStopped
-
-import mpa_gym  # noqa: F401
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.supervisor import take_over_times
 from mpa_gym.agents.evaluation.episodes import (
@@ -47,7 +48,6 @@ from mpa_gym.agents.evaluation.episodes import (
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import load_policy
-
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 
 UNSTABLE_APERIODIC_MM = 1.0

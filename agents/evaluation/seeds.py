@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG
 
 BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it

@@ -36,12 +36,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.agents.controllers.supervisor import SupervisorSpec
 from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec
-from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
-
-import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
 from mpa_gym.envs.leg_env import make_plans, task_config
 from mpa_gym.files import read_yaml
 from mpa_gym.model.params import DEFAULT_PARAMS, check_keys

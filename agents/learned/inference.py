@@ -23,8 +23,8 @@ from typing import Any
 
 import numba
 import numpy as np
-from mpa_gym.agents.learned.frontend import FeatureSpec, Frontend, act_row, new_state, observe_row
 
+from mpa_gym.agents.learned.frontend import FeatureSpec, Frontend, act_row, new_state, observe_row
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}

@@ -9,13 +9,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.excite import ExcitePolicy
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.learned.config import TrainConfig, load_config
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
 from mpa_gym.agents.learned.inference import DeployedPolicy
-
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig

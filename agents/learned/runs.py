@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mpa_gym.agents.learned.anchor import rest_for_save
 
+from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"

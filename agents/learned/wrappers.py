@@ -23,6 +23,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import VectorEnv, VectorWrapper
 from gymnasium.vector.utils import batch_space
+
 from mpa_gym.agents.learned.frontend import (
     ActionSpec,
     FeatureSpec,
@@ -30,7 +31,6 @@ from mpa_gym.agents.learned.frontend import (
     adapt_time_constant,
     new_state,
 )
-
 from mpa_gym.task.contract import OBS_KREF as OK
 from mpa_gym.task.contract import OBS_XREF as OXR
 from mpa_gym.task.contract import check_action

@@ -9,9 +9,9 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
 from mpa_gym.agents.evaluation.episodes import eval_task
 from mpa_gym.agents.learned.policies import load_run
-
 from mpa_gym.hardware import protocol as proto
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.transport import open_transport

@@ -48,10 +48,10 @@ from typing import Any
 
 import numba
 import numpy as np
-from mpa_gym.agents.rig.rollout import read_log
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
+from mpa_gym.agents.rig.rollout import read_log
 from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE, Plant, Scenario, load_scenario
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range

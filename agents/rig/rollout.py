@@ -33,10 +33,10 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+
 from mpa_gym.agents.controllers.supervisor import FALLBACK, POLICY, took_over
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
 from mpa_gym.agents.learned.policies import load_policy
-
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.env import (
     CONTROL_HZ,

@@ -66,6 +66,9 @@ from typing import Any
 
 import optuna
 import yaml
+from optuna.exceptions import ExperimentalWarning
+from optuna.trial import TrialState
+
 from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
 from mpa_gym.agents.learned.config import (
     ACTION_WRAPPER,
@@ -76,9 +79,6 @@ from mpa_gym.agents.learned.config import (
     parse_config,
 )
 from mpa_gym.agents.training.train import train
-from optuna.exceptions import ExperimentalWarning
-from optuna.trial import TrialState
-
 from mpa_gym.files import read_yaml
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"

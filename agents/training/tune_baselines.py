@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.evaluation.robustness import cell_metrics, run_batch
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG, load_config
-
 from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
 
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
