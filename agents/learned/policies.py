@@ -16,6 +16,7 @@ from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.learned.config import TrainConfig, load_config
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
 from mpa_gym.agents.learned.inference import DeployedPolicy
+from mpa_gym.agents.learned.runs import legacy_objects
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
@@ -190,7 +191,8 @@ class SavedModel:
     def load(cls, path: str | Path) -> SavedModel:
         from stable_baselines3.common.save_util import load_from_zip_file
 
-        data, params, _ = load_from_zip_file(path, device="cpu")
+        data, params, _ = load_from_zip_file(path, device="cpu",
+                                             custom_objects=legacy_objects(Path(path)))
         if data is None or "policy" not in params:
             raise ValueError("not a saved SB3 model (no data or no policy weights)")
         kwargs = {**data.get("policy_kwargs", {}), "optimizer_class": _NoOptimizer}

@@ -10,6 +10,8 @@ evaluations during training), ``best/`` and ``tb/``. Every file is written atomi
 
 from __future__ import annotations
 
+import base64
+import io
 import json
 import pickle
 import zipfile
@@ -22,6 +24,46 @@ from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
+# the app's modules before 0.2.0, when it was a top-level ``agents`` package, and where they are
+# now: a model file written then names its policy class (agents.anchor.RestAnchoredPolicy) by
+# the old module, which no longer exists (and may be another distribution's)
+LEGACY_MODULES = {
+    f"agents.{old}": f"mpa_gym.agents.{new}" for old, new in {
+        "baselines": "controllers.baselines", "supervisor": "controllers.supervisor",
+        "excite": "controllers.excite", "config": "learned.config",
+        "wrappers": "learned.wrappers", "anchor": "learned.anchor",
+        "policies": "learned.policies", "inference": "learned.inference",
+        "evaluate": "evaluation.evaluate", "robustness": "evaluation.robustness",
+        "seeds": "evaluation.seeds", "train": "training.train", "tune": "training.tune",
+        "tune_baselines": "training.tune_baselines", "rollout": "rig.rollout",
+        "identify": "rig.identify", "worker": "worker"}.items()}
+
+
+class _CurrentModules(pickle.Unpickler):
+    """Unpickles what names a module of ``LEGACY_MODULES`` from where it is now."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        return super().find_class(LEGACY_MODULES.get(module, module), name)
+
+
+def legacy_objects(path: Path) -> dict[str, Any]:
+    """``custom_objects`` for SB3's loaders: the entries of the model file ``path`` that name a
+    module of the layout before 0.2.0, unpickled from where it is now (none for a file written
+    since)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            data = json.loads(z.read("data"))
+    except (zipfile.BadZipFile, KeyError, ValueError, OSError) as e:
+        raise DamagedFileError(f"{path} is damaged (not a complete SB3 model file: {e})"
+                               ) from None
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        if not (isinstance(value, dict) and ":serialized:" in value):
+            continue
+        raw = base64.b64decode(value[":serialized:"])
+        if any(m.encode() in raw for m in LEGACY_MODULES):
+            out[key] = _CurrentModules(io.BytesIO(raw)).load()
+    return out
 
 
 def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:

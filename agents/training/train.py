@@ -53,6 +53,7 @@ from mpa_gym.agents.learned.config import (
 from mpa_gym.agents.learned.runs import (
     cut_eval_history,
     latest_state,
+    legacy_objects,
     reconcile_best,
     save_final,
 )
@@ -291,7 +292,8 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
             norm.set_venv(env.venv)
             env = norm
         try:
-            model = PPO.load(model_path, env=env, device="cpu", tensorboard_log=str(run / "tb"))
+            model = PPO.load(model_path, env=env, device="cpu", tensorboard_log=str(run / "tb"),
+                             custom_objects=legacy_objects(model_path))
         except Exception as e:
             env.close()
             raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
