@@ -8,12 +8,16 @@ order around the network)."""
 
 from __future__ import annotations
 
+import base64
+import json
 import shutil
+import zipfile
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from stable_baselines3.common.save_util import load_from_zip_file
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.learned.inference import DeployedPolicy
@@ -189,10 +193,28 @@ def test_both_policies_check_the_estimator_setting():
         make(3.0)
 
 
+def _as_written_before_0_2(model_zip):
+    """Rewrite ``model_zip``'s policy class as a model file of 0.1.0 names it: by its module
+    then, ``agents.anchor`` (a pickle of STACK_GLOBAL 'agents.anchor' 'RestAnchoredPolicy')."""
+    with zipfile.ZipFile(model_zip) as z:
+        files = {name: z.read(name) for name in z.namelist()}
+    data = json.loads(files["data"])
+    assert b"RestAnchoredPolicy" in base64.b64decode(data["policy_class"][":serialized:"])
+    module, name = b"agents.anchor", b"RestAnchoredPolicy"
+    legacy = (b"\x80\x04\x8c" + bytes([len(module)]) + module + b"\x8c" + bytes([len(name)])
+              + name + b"\x93.")
+    data["policy_class"][":serialized:"] = base64.b64encode(legacy).decode()
+    files["data"] = json.dumps(data).encode()
+    with zipfile.ZipFile(model_zip, "w") as z:
+        for name, content in files.items():
+            z.writestr(name, content)
+
+
 def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_path):
     # run folders written before the app moved into mpa_gym.agents name the wrappers
-    # agents.wrappers.… and give the supervisor in its flat form (the default config's levels);
-    # such a folder loads, supervised and not, and acts exactly as today's
+    # agents.wrappers.…, their model file the policy class agents.anchor.RestAnchoredPolicy,
+    # and give the supervisor in its flat form (the default config's levels); such a folder
+    # loads, supervised and not, and acts exactly as today's
     old = tmp_path / "old_run"
     shutil.copytree(tiny_run, old)
     cfg = yaml.safe_load((old / "config.yaml").read_text())
@@ -202,6 +224,9 @@ def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_p
                                     "aperiodic_clip_mm": 0.5, "persistent_mm": 2.0,
                                     "persistent_clip_mm": 3.0, "last_resort": "afc"}
     (old / "config.yaml").write_text(yaml.safe_dump(cfg))
+    _as_written_before_0_2(old / "model.zip")
+    with pytest.raises(ModuleNotFoundError, match="agents"):  # what SB3 alone makes of it
+        load_from_zip_file(old / "model.zip", device="cpu")
     assert "agents.wrappers.TrackingErrorObservation" in (old / "config.yaml").read_text()
     env = gym.make("MPALegResidual-v0", scenario="heldout_a")
     obs = np.stack([env.reset(seed=s)[0] for s in range(6)])
