@@ -1,4 +1,4 @@
-"""The `mpa-gym` command line against DESIGN.md's contract."""
+"""The `mpa-gym` command line against its contract (docs/design.md#cli)."""
 
 from __future__ import annotations
 

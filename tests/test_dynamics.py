@@ -88,8 +88,8 @@ def reference_run(scenario: str):
 @pytest.mark.parametrize("scenario", ["nominal", "initial_error", "impulse", "kmin"])
 @pytest.mark.parametrize("dt", [DT_DEFAULT, 0.01])
 def test_fixed_step_rk4_within_1e6_m_of_solve_ivp_over_30s(scenario, dt):
-    # The accuracy target: |X_rk4 − X_solve_ivp(rtol 1e-10)| < 1e-6 m over 30 s, at the
-    # simulator's step and at the 100 Hz control step the environments use.
+    # The accuracy target (docs/design.md#targets): |X_rk4 − X_solve_ivp(rtol 1e-10)| < 1e-6 m
+    # over 30 s, at the simulator's step and at the 100 Hz control step the environments use.
     ref = reference_run(scenario)
     rk = simulate(scenario, dt=dt)
     assert ref.t[-1] == pytest.approx(30.0)

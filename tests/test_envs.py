@@ -52,7 +52,7 @@ def rollout(env, seed, n, policy_seed=0):
 @pytest.mark.parametrize("env_id", IDS)
 def test_generic_properties(env_id, scenario):
     # dm_control-style checks: determinism under a seed, finite observations inside the space,
-    # no constant observation element, the DESIGN.md info keys.
+    # no constant observation element, the info keys of docs/design.md#step-contract.
     env = gym.make(env_id, scenario=scenario, task=SHORT)
     a, b = rollout(env, 7, 150), rollout(env, 7, 150)
     assert len(a) == len(b)
@@ -84,7 +84,7 @@ def test_zero_residual_is_the_feedforward_and_tracks_nominal():
     assert trunc and not term
     e = np.array(errs)
     rmse_last3 = np.sqrt(np.mean(e[-900:] ** 2))
-    assert rmse_last3 < 0.5e-3  # the issue's target; the held (ZOH) command costs ~1e-7 m here
+    assert rmse_last3 < 0.5e-3  # docs/design.md#targets; the held command costs ~1e-7 m here
 
 
 def test_zero_residual_under_load_sags_as_the_model_predicts():
@@ -106,7 +106,7 @@ def test_zero_residual_under_load_sags_as_the_model_predicts():
 def test_env_integrator_matches_solve_ivp_with_the_same_held_commands():
     # 6 s of the residual env from Fig. 4(a)'s initial error, driven by a smooth 0.3 bar residual
     # (what a trained policy adds), replayed through scipy DOP853 (rtol 1e-10) with the same
-    # zero-order-hold commands: within 1e-6 m, the issue's target. With the default two RK4
+    # zero-order-hold commands: within 1e-6 m (docs/design.md#targets). With the default two RK4
     # substeps per 10 ms the measured error is ~1e-7 m; one substep gives 1.6e-6 m here.
     from mpa_gym.bench import integrator_error
 

@@ -26,7 +26,7 @@ pytestmark = REALTIME  # a device loop in another process: conftest.REALTIME
 TASK = {"episode_s": 1.0}
 C1 = DEFAULT_PARAMS.mpa.C1
 M = DEFAULT_PARAMS.leg.m
-# the rig of issue 13: 0.6 kg heavier than Tab. A2, muscles 10 % softer
+# the off-nominal rig's offsets (docs/design.md#reference-plants): +0.6 kg, C1 10 % lower
 HEAVY = {"extra_mass_kg": 0.6, "C1_Pa": 0.9 * C1}
 
 

@@ -64,7 +64,7 @@ def rig_log(tmp_path_factory):
 
 def check_estimate(plant, true_mass, true_c1, true_lag, true_dead):
     mass = plant["mass_kg"] + plant["extra_mass_kg"]
-    assert abs(mass - true_mass) <= 0.03 * true_mass, mass  # the 3 %
+    assert abs(mass - true_mass) <= 0.03 * true_mass, mass  # 3 %: docs/design.md#targets
     assert abs(plant["C1_Pa"] - true_c1) <= 0.15 * true_c1, plant["C1_Pa"]  # 15 %
     assert abs(plant["pressure_lag_s"] - true_lag) <= 0.010, plant["pressure_lag_s"]  # 10 ms
     assert abs(plant["pressure_dead_time_s"] - true_dead) <= 0.010, plant  # 10 ms
@@ -76,7 +76,7 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
     r = identify(rig_log, out=out, plot=tmp_path / "fit.png")
     pl, sd = r["plant"], r["uncertainty"]
     check_estimate(pl, TOTAL_MASS, 0.9 * C1, 0.03, 0.02)
-    assert r["validation_rmse_m"] <= 1e-3, r["validation_rmse_m"]  # the 1 mm
+    assert r["validation_rmse_m"] <= 1e-3, r["validation_rmse_m"]  # docs/design.md#targets
     # friction: 20 % on the braid ratio and the slider's Coulomb force. Both act as sign(V) times
     # a force (μ_b × the pressure force, F_c) and differ in how that force varies with the
     # pressures along the excitation; 20 % tells each effect from absent and from double, and

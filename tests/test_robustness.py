@@ -208,12 +208,12 @@ def test_no_harm_audit_names_every_broken_bound_and_nothing_else():
 
 
 def test_tuned_pid_is_stable_on_a_slow_regulator_that_undid_the_old_gains():
-    # The first plant: 20 ms regulator dead time, 30 ms lag, a 0.02 bar quantum and a
-    # 0.5 kg load, and the same regulator on the unloaded leg (a lighter leg is the less stable
-    # one). The gains tuned with undamped twins hold both, on the loaded leg with an error
-    # under a tenth of the feedforward's (~10.5 mm); the gains tuned on the draws alone (Kd ~13×
-    # the leg's critical damping) oscillate on the unloaded one, the check that these plants
-    # tell the two apart.
+    # The slow-regulator plant (docs/design.md#reference-plants): 20 ms regulator dead time,
+    # 30 ms lag, a 0.02 bar quantum and a 0.5 kg load, and the same regulator on the unloaded
+    # leg (a lighter leg is the less stable one). The gains tuned with undamped twins hold both,
+    # on the loaded leg with an error under a tenth of the feedforward's (~10.5 mm); the gains
+    # tuned on the draws alone (Kd ~13× the leg's critical damping) oscillate on the unloaded
+    # one, the check that these plants tell the two apart.
     sc = _scenario(load_scenario({"name": "slow", "duration_s": 15.0}), "slow",
                    {"pressure_quantum_bar": 0.02})
     slow = {"pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03}

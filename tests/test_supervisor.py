@@ -278,7 +278,7 @@ def _sc(duration_s: float) -> object:
 
 def test_fallback_rescues_a_residual_that_destabilises_a_slow_regulator():
     # A stiff PID (Kp 80 bar/m, Ki 3000 bar/(m s), Kd 12 bar s/m) as "the residual" on the
-    # issue's first plant (20 ms dead time, 30 ms lag, 0.02 bar quantum, +0.5 kg) and on a
+    # slow-regulator plant (20 ms dead time, 30 ms lag, 0.02 bar quantum, +0.5 kg) and on a
     # 40 ms regulator: alone it oscillates or leaves the bounds; supervised (tuned pid as the
     # fallback) the loop is stable on both and within 1.5× (the no-harm ratio) of the tuned
     # pid alone. The plants and the stiff gains are none the monitor's defaults were set on.
@@ -370,8 +370,9 @@ def test_bumpless_transfer_keeps_carrying_the_load():
     # hair-trigger limit-cycle level (0.01 mm) trips at the monitor's arming (quantised
     # pressures make every loop a little aperiodic). Started from the period mean of the
     # command the first one held, the second one continues the loop: its largest |e| after
-    # the switch is within 1 mm (issue 12's recovery band) of pid's alone. From zero state it
-    # drops the load: over 5 mm, on a plain regulator and on 20 ms of dead time + 30 ms lag.
+    # the switch is within 1 mm (the recovery band, docs/design.md#targets) of pid's alone.
+    # From zero state it drops the load: over 5 mm, on a plain regulator and on 20 ms of dead
+    # time + 30 ms lag.
     sc = _sc(15.0)
     pid = make_baseline("pid", sc)
     spec = flat(aperiodic_mm=0.01)

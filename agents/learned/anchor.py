@@ -3,10 +3,10 @@
 With ``errors_only`` features (``TrackingErrorObservation``) every feature is zero while the leg
 follows X̂ exactly and no correction has been commanded: e, ė, the integrals, their resonant
 outputs and the previous action. That is the state the feedforward alone keeps on the plant it
-was computed for. An MLP's output there is whatever training left it at, not zero: the default
-run's policy lowered both pressures by 0.12–0.16 bar at rest (stiffness −3…−5 %), which on the
-nominal plant is a 0.016 mm tracking error the feedforward alone does not make, and on the kmin
-design (flexor feedforward near 0 bar) clips the flexor. With the previous action among the
+was computed for. An MLP's output there is whatever training left it at, not zero: a
+constant pressure offset at rest, which on the nominal plant is a tracking error the
+feedforward alone does not make and on the kmin design (flexor feedforward near 0 bar)
+clips the flexor (CHANGELOG.md, 0.1.0, 56b6135). With the previous action among the
 features, a nonzero rest output also feeds itself back as a fixed point.
 
 ``RestAnchoredPolicy`` is SB3's ``MlpPolicy`` with the Gaussian's mean

@@ -66,11 +66,12 @@ more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiff
 Each update's weight is 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
 moves it. An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
 known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period.
-Off the training plants, a_k learned from the error features went the wrong way on some
-plants; the estimate needs no learning. It is a controller's computation from its own commands
-and the reference, like the features, never a plant parameter. The action space stays (a_F,
-a_k), so a config switches the estimator on or off without another network; the policy's a_k
-is then ignored, and its Gaussian adds noise, not bias, to PPO's gradient.
+Off the training plants, an a_k learned from the error features can go the wrong way
+(CHANGELOG.md, 0.1.0, e2e9a73); the estimate needs no learning. It is a controller's
+computation from its own commands and the reference, like the features, never a plant
+parameter. The action space stays (a_F, a_k), so a config switches the estimator on or off
+without another network; the policy's a_k is then ignored, and its Gaussian adds noise, not
+bias, to PPO's gradient.
 """
 
 from __future__ import annotations

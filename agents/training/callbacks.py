@@ -131,8 +131,8 @@ class EvalWorker(Worker):
         return self.submit(_worker_evaluate, snapshot)
 
 
-# env steps of the default config per second are ~1e4 on one core: an interval of 1e4 steps
-# lasts about as long as the worker takes to start (the default's 2.5e5 lasts ~30 s)
+# an evaluation interval shorter than this ends before a spawned worker has started, and
+# training would wait for it
 WORKER_MIN_EVAL_FREQ = 10_000
 
 

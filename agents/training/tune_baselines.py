@@ -7,16 +7,16 @@ with the effects that damp or limit an oscillation taken out (``UNDAMPED``: the 
 damping at the low end of its range, no braid or slider friction, no regulator rate limit).
 Uniform draws of a dozen fields rarely combine a long dead time with little friction, yet that
 is the plant a loop goes unstable on (a rig's friction changes with wear and lubrication, its
-regulator with the supply), and the gains tuned on the draws alone were unstable from 10 ms of
-dead time on the unloaded, frictionless leg of the robustness grid. It runs each candidate's
-gains on all of them as one batch of the native vector env, and minimises the mean position RMSE
+regulator with the supply), and gains tuned on the draws alone can be unstable on the
+robustness grid's slow-regulator cells. It runs each candidate's gains on all of them as one
+batch of the native vector env, and minimises the mean position RMSE
 over the plants, each over the last three periods of a ``episode_s`` episode. A plant on which
 the loop is unstable (``mpa_gym.agents.evaluation.robustness``: its error does not settle onto the
 reference's period) or terminated counts as ``FAILED_MM``: a control engineer does not field gains
-that oscillate on a plant they were tuned for, however small the mean, and the gains the plain mean
-picked (Kd about 13 times the leg's critical damping) were unstable on three of the sixteen
-plants, all with dead times of 20 ms or more. The mean, not the worst case: with dead times up
-to 30 ms the worst training plant stays at several millimetres for every gain tried, and a
+that oscillate on a plant they were tuned for, however small the mean, and a plain mean can pick
+a derivative gain far above the leg's critical damping that oscillates on the plants with the
+longest dead times (CHANGELOG.md, 0.1.0, 2c66f17). The mean, not the worst case: with dead times
+up to 30 ms the worst training plant stays at several millimetres for every gain tried, and a
 worst-case objective tunes for that one plant only. The search space of each controller is
 ``SPACES``; the budget is ``n_trials`` Optuna trials with a seeded TPE sampler, so a run is
 reproducible.

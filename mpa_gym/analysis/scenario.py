@@ -413,7 +413,7 @@ def _why_not_number(v: Any) -> str:
 
 
 def scenario_from_dict(d: Any, name: str = "custom") -> Scenario:
-    """Build and validate a Scenario from the YAML schema of DESIGN.md."""
+    """Build and validate a Scenario from the YAML schema (docs/design.md#scenarios)."""
     top = _section(d, f"scenario {name!r}", _TOP_KEYS, {"duration_s"})
     w = str(top.get("name", name))
     try:

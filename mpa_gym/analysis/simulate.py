@@ -26,8 +26,20 @@ from mpa_gym.model.dynamics import (
 )
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, RegulatorParams, check_range
 
-DT_DEFAULT = 5.0e-3  # [s] RK4 step; tests hold it to 1e-6 m of solve_ivp (measured 4e-8 m)
-METRIC_PERIODS = 3  # rmse and max error over the last three periods (DESIGN.md)
+DT_DEFAULT = 5.0e-3  # [s] RK4 step, held to 1e-6 m of solve_ivp (docs/design.md#targets)
+METRIC_PERIODS = 3  # rmse and max error over the last three periods (docs/design.md#cli)
+
+
+def metric_window(t: np.ndarray, period_s: float) -> slice:
+    """The samples every report takes its metrics over (``simulate``, the evaluation report, the
+    robustness sweep, rollouts): the last ``METRIC_PERIODS`` reference periods of a trace sampled
+    evenly at the times ``t``, i.e. its last ``METRIC_PERIODS`` · N samples with N = round(T / Δt)
+    (all of them if the trace is shorter)."""
+    n = len(t)
+    if n < 2:
+        return slice(0, n)
+    dt = (t[-1] - t[0]) / (n - 1)
+    return slice(max(0, n - METRIC_PERIODS * round(period_s / dt)), n)
 
 
 class SimulationError(RuntimeError):
@@ -54,11 +66,9 @@ class SimulationResult:
         """[m] X − X̂."""
         return self.x - self.x_ref
 
-    def metric_window(self) -> np.ndarray:
-        """Mask of the last three periods (the whole run if it is shorter)."""
-        t_end = self.t[-1]
-        start = max(0.0, t_end - METRIC_PERIODS * self.scenario.reference.period)
-        return self.t >= start - 1e-12
+    def metric_window(self) -> slice:
+        """The last three periods (:func:`metric_window`)."""
+        return metric_window(self.t, self.scenario.reference.period)
 
     @property
     def rmse_m(self) -> float:
@@ -70,7 +80,7 @@ class SimulationResult:
         return float(np.max(np.abs(self.error[self.metric_window()])))
 
     def to_json(self) -> dict[str, Any]:
-        """The `mpa-gym simulate --json` object (DESIGN.md contract)."""
+        """The `mpa-gym simulate --json` object (docs/design.md#cli)."""
         return {
             "scenario": self.scenario.name,
             "rmse_m": self.rmse_m,

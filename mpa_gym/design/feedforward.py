@@ -21,7 +21,7 @@ from mpa_gym.model.dynamics import force_terms
 from mpa_gym.model.leg import kinematics
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 
-P_MAX_DEFAULT = 7.0 * BAR  # [Pa] default upper pressure limit (DESIGN.md)
+P_MAX_DEFAULT = 7.0 * BAR  # [Pa] default upper pressure limit (docs/design.md#physics)
 
 
 class InfeasibleDesignError(ValueError):

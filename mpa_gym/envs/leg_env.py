@@ -100,7 +100,8 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
     ## Arguments
 
     - `scenario`: a name in `configs/scenarios` (`nominal`, `load_1kg`, …), a YAML path or a dict
-      (DESIGN.md schema; `plant` sets the realism, `randomize` the per-episode ranges).
+      (schema: docs/design.md#scenarios; `plant` sets the realism, `randomize` the
+      per-episode ranges).
     - `stiffness`: the design behind k̂ and (residual env) the feedforward: `None` (the
       scenario's), `"kmax"`, `"kmin"`, a constant in N/m, or `{"t_s": [...], "k_N_per_m": [...]}`;
       a list of these draws one design per episode (e.g. `[null, kmax, kmin]` for training).

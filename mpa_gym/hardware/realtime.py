@@ -7,9 +7,9 @@
   (root, ``CAP_SYS_NICE`` or an ``rtprio`` limit in ``/etc/security/limits.conf``); without it the
   loop runs at normal priority and the returned report says so.
 - **Garbage collection.** CPython's cyclic collector pauses the interpreter for a time that
-  grows with the heap: with torch imported and a rollout's records accumulating, its first
-  full collection, about 28 s into a 500 Hz rollout, took 43 ms, beyond the device's 40 ms
-  watchdog, which vented the rig. It is frozen (``gc.freeze``) and disabled for the loop,
+  grows with the heap: with torch imported and a rollout's records accumulating, a full
+  collection can pause the loop for longer than the device's 40 ms watchdog, which then
+  vents the rig. It is frozen (``gc.freeze``) and disabled for the loop,
   always (``sched_fifo`` or not), and re-enabled after. The loop allocates no reference
   cycles, so nothing accumulates meanwhile.
 

@@ -5,7 +5,7 @@ n number of fibre turns, C1/C2 Mooney-Rivlin constants, V_b interior (bladder) v
 V_r rubber volume, W strain-energy density, γ viscosity. Every function takes floats or numpy
 arrays (broadcast) of L, P' and v.
 
-Documented assumption (DESIGN.md): the braided-cylinder geometry
+Documented assumption (docs/design.md#assumptions): the braided-cylinder geometry
 ``D(L) = sqrt(b² − L²) / (n π)`` and ``V_b(L) = π D² L / 4 = L (b² − L²) / (4 π n²)``.
 The stretches used in W are λ1 = L / L0 (axial), λ2 = D(L) / D0 (hoop), λ3 = 1 / (λ1 λ2)
 (incompressible rubber); the Appendix's dW/dL is exactly the L-derivative of this W.
@@ -36,12 +36,12 @@ PI = math.pi
 
 
 def braid_diameter(L: Array, p: MPAParams) -> Array:
-    """[m] D(L) = sqrt(b² − L²) / (n π) (assumption, DESIGN.md)."""
+    """[m] D(L) = sqrt(b² − L²) / (n π) (docs/design.md#assumptions)."""
     return sqrt(p.b**2 - L**2) / (p.n * PI)
 
 
 def bladder_volume(L: Array, p: MPAParams) -> Array:
-    """[m^3] V_b(L) = L (b² − L²) / (4 π n²) (assumption, DESIGN.md)."""
+    """[m^3] V_b(L) = L (b² − L²) / (4 π n²) (docs/design.md#assumptions)."""
     return L * (p.b**2 - L**2) / (4.0 * PI * p.n**2)
 
 

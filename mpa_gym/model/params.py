@@ -1,4 +1,5 @@
-"""Model parameters: Tables A1 and A2 of the paper plus the documented assumptions of DESIGN.md.
+"""Model parameters: Tables A1 and A2 of the paper plus the assumptions where it is silent
+(docs/design.md#assumptions).
 
 All quantities are SI (m, s, N, Pa, kg). Pressures are gauge pressures (the paper's P').
 Variants are made with :func:`dataclasses.replace`; no default is repeated anywhere else.
@@ -81,7 +82,7 @@ class MPAParams:
     n: float = 1.68  # [-] n, number of turns of a fibre, Tab. A1
     gamma: float = 30.0  # [N s/m] γ = γ_e = γ_f, viscosity coefficient, Eq. (4), Tab. A1
     L0: float = 125.0e-3  # [m] L_0 = L_e0 = L_f0, resting length, Tab. A1/A2
-    thickness: float = 1.0e-3  # [m] t, bladder wall thickness (assumption, DESIGN.md)
+    thickness: float = 1.0e-3  # [m] t, bladder wall thickness (docs/design.md#assumptions)
     # Braid friction (not in the paper; 0 keeps its model exact): a dry friction on the tension
     # proportional to the pressure force −P' dV_b/dL, after Tondu & Lopez (2000); see mpa.force.
     friction: float = 0.0  # [-] μ_b, friction force / pressure force
@@ -105,7 +106,8 @@ class MPAParams:
 
     @cached_property
     def Vr(self) -> float:
-        """[m^3] V_r, rubber volume π L0 (r_o² − (r_o − t)²), r_o = D0/2 (assumption, DESIGN.md)."""
+        """[m^3] V_r, rubber volume π L0 (r_o² − (r_o − t)²), r_o = D0/2
+        (docs/design.md#assumptions)."""
         ro = 0.5 * self.D0
         return math.pi * self.L0 * (ro**2 - (ro - self.thickness) ** 2)
 
@@ -153,13 +155,13 @@ class LegParams:
 
     @cached_property
     def beta0(self) -> float:
-        """[rad] β0 = β(x_rest), Eq. (9) (assumption, DESIGN.md)."""
+        """[rad] β0 = β(x_rest), Eq. (9) (docs/design.md#assumptions)."""
 
         return float(knee_angle(self.x_rest, self))
 
     @cached_property
     def l_mf0(self) -> float:
-        """[m] l_Mf0 = l_Mf(β0), Eq. (10) (assumption, DESIGN.md)."""
+        """[m] l_Mf0 = l_Mf(β0), Eq. (10) (docs/design.md#assumptions)."""
 
         return float(flexor_path(self.x_rest, self))
 

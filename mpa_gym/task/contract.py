@@ -13,7 +13,8 @@ versions and the rig (``MPALegHardware-v0``): defined here once, read everywhere
   stiffness, the reward and its terms, the safety flags, termination).
 - **Safety flags.** ``SAFETY_CLIPPED``, ``SAFETY_SLEW``: bits of ``info["safety"]``.
 - **info.** :func:`step_info` builds every env's ``info`` from an output row, a state row and a
-  plan row (or arrays of them, for a vector env); ``INFO_KEYS`` are DESIGN.md's keys.
+  plan row (or arrays of them, for a vector env); ``INFO_KEYS`` are the keys every env
+  fills on every step (docs/design.md#step-contract).
 - **Action.** :func:`action_space` and :func:`check_action` (shape, finiteness, the range, the
   error text).
 """
@@ -150,7 +151,7 @@ SAFETY_CLIPPED = 1  # a command was clipped to [0, p_max]
 SAFETY_SLEW = 2  # a command was slew-rate limited
 
 # --------------------------------------------------------------------------------- info
-# Keys every env fills on every step (the DESIGN.md contract) and the reward breakdown.
+# Keys every env fills on every step (docs/design.md#step-contract) and the reward breakdown.
 INFO_KEYS = ("x_m", "x_ref_m", "k_N_per_m", "k_ref_N_per_m", "pressure_cmd_bar", "pressure_bar")
 REWARD_KEYS = ("reward_position", "reward_stiffness", "reward_effort")
 
