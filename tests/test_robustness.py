@@ -26,6 +26,7 @@ from mpa_gym.agents.evaluation.robustness import (
     run_batches,
 )
 from mpa_gym.analysis.scenario import Impulse, load_scenario
+from mpa_gym.analysis.simulate import metric_window, whole_periods
 
 SHORT = {"name": "short", "duration_s": 9.0}  # three periods: the metric window is the episode
 PLANTS = [{"pressure_dead_time_s": 0.0137, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5},
@@ -267,3 +268,17 @@ def test_scenario_plots_are_drawn_while_the_sweep_finishes(tmp_path):
     assert paths["plot_a"] == rep["plots"][0] and rep["plots"][0].stat().st_mtime_ns == drawn
     assert len(list((tmp_path / "plots").glob("*.png"))) > 1  # and the sweep's heatmaps
     assert "robustness" in json.loads(paths["json"].read_text())
+
+
+def test_every_report_takes_the_same_window():
+    # the report, simulate and rollouts take t_end − 3T ≤ t ≤ t_end; the sweep the same window
+    # less its first sample (exactly three periods, to average them sample by sample)
+    for t, per in ((0.01 * np.arange(1, 1801), 300), (0.005 * np.arange(0, 4001), 600)):
+        mask = metric_window(t, 3.0)
+        idx = np.flatnonzero(mask)
+        assert idx.size == 3 * per + 1 and idx[-1] == t.size - 1
+        np.testing.assert_allclose(t[idx[0]], t[-1] - 9.0, atol=1e-9)
+        np.testing.assert_array_equal(np.arange(t.size)[whole_periods(t, 3.0)], idx[1:])
+    short = 0.01 * np.arange(1, 451)  # shorter than three periods: all of it
+    assert metric_window(short, 3.0).all()
+    assert np.arange(short.size)[whole_periods(short, 3.0)].size == short.size

@@ -12,8 +12,8 @@ ends; its autoreset is ignored. :func:`run_episode` runs one episode of a given 
 through the same loop (the env as a batch of one row), so a single episode and a batch row are
 the same code path, and the check that they agree tests the vector env against the single one.
 
-Metrics are taken over the last ``METRIC_PERIODS`` reference periods of an episode
-(:func:`metric_window`), for every report.
+Metrics are taken over the last three reference periods of an episode
+(``mpa_gym.analysis.simulate.metric_window``, the window of every report).
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.supervisor import take_over_times, took_over
+from mpa_gym.analysis.simulate import metric_window
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
-METRIC_PERIODS = 3  # metrics are taken over the last three reference periods of an episode
 RECOVERY_BAND_M = 1e-3  # [m] recovered: |X − X̂| stays below this
 # the per-step info fields a Trace keeps: Trace field -> info key
 _RECORDED = {"t": "t_s", "x": "x_m", "x_ref": "x_ref_m", "k": "k_N_per_m",
@@ -43,12 +43,6 @@ def eval_task(run_cfg: Any = None) -> dict[str, Any]:
     period, limits, residual scale) if it has a run config; the scenario's duration rules."""
     task = (run_cfg.env_kwargs.get("task") if run_cfg is not None else None) or {}
     return {k: v for k, v in task.items() if k != "episode_s"}
-
-
-def metric_window(n_steps: int, steps_per_period: int) -> slice:
-    """The samples metrics are taken over: the last ``METRIC_PERIODS`` periods of ``n_steps``
-    (all of them if the episode is shorter)."""
-    return slice(max(0, n_steps - METRIC_PERIODS * steps_per_period), n_steps)
 
 
 def recovery_s(t: np.ndarray, err: np.ndarray, t_end: float, band_m: float = RECOVERY_BAND_M
@@ -217,7 +211,7 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
 
 def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
     """An episode's figures (``mpa_gym.agents.evaluation.evaluate``'s module docstring)."""
-    w = trace.t >= trace.t[-1] - METRIC_PERIODS * period_s - 1e-9
+    w = metric_window(trace.t, period_s)
     e = trace.x - trace.x_ref
     ek = (trace.k - trace.k_ref) / trace.k_ref
     return {

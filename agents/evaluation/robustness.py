@@ -47,7 +47,7 @@ from mpa_gym.agents.evaluation.episodes import (
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
-from mpa_gym.analysis.simulate import METRIC_PERIODS, metric_window
+from mpa_gym.analysis.simulate import METRIC_PERIODS, whole_periods
 
 UNSTABLE_APERIODIC_MM = 1.0
 
@@ -168,7 +168,7 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
                         "terminated": bool(run["terminated"][i]), **took})
             continue
-        w = e[metric_window(run["t"], period_s), i].reshape(METRIC_PERIODS, per)
+        w = e[whole_periods(run["t"], period_s), i].reshape(METRIC_PERIODS, per)
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),

@@ -30,16 +30,20 @@ DT_DEFAULT = 5.0e-3  # [s] RK4 step, held to 1e-6 m of solve_ivp (docs/design.md
 METRIC_PERIODS = 3  # rmse and max error over the last three periods (docs/design.md#cli)
 
 
-def metric_window(t: np.ndarray, period_s: float) -> slice:
-    """The samples every report takes its metrics over (``simulate``, the evaluation report, the
-    robustness sweep, rollouts): the last ``METRIC_PERIODS`` reference periods of a trace sampled
-    evenly at the times ``t``, i.e. its last ``METRIC_PERIODS`` · N samples with N = round(T / Δt)
-    (all of them if the trace is shorter)."""
+def metric_window(t: np.ndarray, period_s: float) -> np.ndarray:
+    """Mask of the samples every report takes its metrics over (``simulate``, the evaluation
+    report, rollouts): the last ``METRIC_PERIODS`` reference periods of a trace at the times
+    ``t``, both ends included, t_end − 3T ≤ t ≤ t_end (the whole trace if it is shorter)."""
+    return t >= t[-1] - METRIC_PERIODS * period_s - 1e-9
+
+
+def whole_periods(t: np.ndarray, period_s: float) -> slice:
+    """:func:`metric_window` less its first sample, for a trace sampled evenly: exactly
+    ``METRIC_PERIODS`` periods of N = round(T / Δt) samples each, which the robustness sweep's
+    periodic/aperiodic split needs (it averages the periods sample by sample)."""
     n = len(t)
-    if n < 2:
-        return slice(0, n)
-    dt = (t[-1] - t[0]) / (n - 1)
-    return slice(max(0, n - METRIC_PERIODS * round(period_s / dt)), n)
+    per = round(period_s / ((t[-1] - t[0]) / (n - 1))) if n > 1 else 1
+    return slice(max(0, n - METRIC_PERIODS * per), n)
 
 
 class SimulationError(RuntimeError):
@@ -66,8 +70,8 @@ class SimulationResult:
         """[m] X − X̂."""
         return self.x - self.x_ref
 
-    def metric_window(self) -> slice:
-        """The last three periods (:func:`metric_window`)."""
+    def metric_window(self) -> np.ndarray:
+        """Mask of the last three periods (:func:`metric_window`)."""
         return metric_window(self.t, self.scenario.reference.period)
 
     @property
