@@ -272,8 +272,8 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
         if note:
             say(note)
     if "OMP_NUM_THREADS" not in os.environ:
-        # a 64-wide MLP gains nothing from a second torch thread: measured 50.9 s on one thread
-        # against 53.5 s on two for the default config, at half the CPU; OMP_NUM_THREADS rules
+        # a 64-wide MLP gains nothing from a second torch thread (it costs a core that the
+        # evaluation worker can use); OMP_NUM_THREADS, when set, rules
         import torch
 
         torch.set_num_threads(1)
