@@ -158,3 +158,26 @@ def test_no_import_cycle(prefix):
 def test_the_cycle_finder_finds_a_cycle():
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert _cycle({"a": {"b"}, "b": {"c"}, "c": set()}) is None
+
+
+# docs/design.md#layers: each layer imports only from the layers above it
+LAYERS = {"mpa_gym.files": 0, "mpa_gym.configs": 0, "mpa_gym.model": 1, "mpa_gym.design": 2,
+          "mpa_gym.analysis": 3, "mpa_gym.task": 4, "mpa_gym.envs": 5, "mpa_gym.hardware": 5,
+          "mpa_gym.figures": 6, "mpa_gym.bench": 6, "mpa_gym.agents": 7}
+
+
+def _layer(module: str) -> int | None:
+    hits = [rank for prefix, rank in LAYERS.items()
+            if module == prefix or module.startswith(prefix + ".")]
+    return max(hits) if hits else None
+
+
+def test_each_library_layer_imports_only_from_the_layers_above_it():
+    bad = []
+    for name, path in MODULES.items():
+        mine = _layer(name)
+        for imp, line, _ in _imports(path):
+            theirs = _layer(imp)
+            if mine is not None and theirs is not None and theirs > mine:
+                bad.append(f"{name}:{line} (layer {mine}) imports {imp} (layer {theirs})")
+    assert not bad
