@@ -105,7 +105,6 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
             swept.cancel()
             raise
     if robustness:
-
         report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
@@ -234,7 +233,6 @@ def tuned_on(spec: str) -> str:
     if spec in TUNED_ON:
         return TUNED_ON[spec]
     if Path(spec).is_dir():
-
         policy, _, cfg = load_policy(spec)
 
         rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
@@ -330,10 +328,8 @@ def markdown(report: dict[str, Any]) -> str:
                        f"{'not within the run' if steps is None else steps} | {curve} |")
         out.append("")
     if report.get("robustness"):
-
         out += robustness_markdown(report["robustness"])
     if report.get("no_harm"):
-
         out += no_harm_markdown(report["no_harm"])
     return "\n".join(out)
 
@@ -381,14 +377,12 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
-
         data["robustness"] = _finite(report["robustness"])
         plots += robustness_plot(report["robustness"], out / "plots")
     atomic_write_text(out / "report.json", json.dumps(data, indent=1, allow_nan=False))
     atomic_write_text(out / "report.md", markdown(report))
     curves = {g: v["curves"] for g, v in (report.get("groups") or {}).items() if v["curves"]}
     if curves:
-
         plots.append(plot_curves(curves, out / "plots" / "learning_curves.png"))
     return {"json": out / "report.json", "markdown": out / "report.md",
             "plots": out / "plots", **{f"plot_{p.stem}": p for p in plots}}

@@ -141,7 +141,6 @@ class TrainConfig:
             raise ConfigError(f"{h}.eval_scenarios={self.eval_scenarios!r} must be a list of "
                               "scenario names, paths or mappings")
         if self.supervisor is not None:
-
             try:
                 self.supervisor = SupervisorSpec.from_config(self.supervisor)
             except ValueError as e:

@@ -288,7 +288,6 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     if Path(spec).is_dir():
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
         if dt is not None and (Path(spec) / "config.yaml").is_file():
-
             check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
         policy, cfg = load_run(spec, deployed=deployed)
         if cfg.supervisor is not None:

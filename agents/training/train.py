@@ -179,7 +179,6 @@ def _new_model(cfg: TrainConfig, env: VecEnv, run: Path, seed: int, verbose: int
         pk["activation_fn"] = getattr(nn, pk["activation_fn"].split(".")[1])
     policy: Any = cfg.policy
     if cfg.anchor_at_rest:
-
         policy = RestAnchoredPolicy
     return PPO(policy, env, policy_kwargs=pk, seed=seed, device="cpu",
                tensorboard_log=str(run / "tb"), verbose=verbose, **ppo_kwargs)
