@@ -7,6 +7,7 @@ SI units in JSON unless a key says ``_bar``; pressures are given and shown in ba
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import signal
@@ -733,11 +734,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         out = a.run(a)
     except ModuleNotFoundError as e:
-        if e.name is None or e.name.split(".")[0] not in EXTRAS:
+        top = (e.name or "").split(".")[0]
+        # only an optional package that is not installed at all: a submodule missing from an
+        # installed one is a genuine fault, whose traceback must show
+        if top not in EXTRAS or importlib.util.find_spec(top) is not None:
             raise
-        extra = EXTRAS[e.name.split(".")[0]]
-        print(f"mpa-gym {a.command}: error: needs {e.name.split('.')[0]}, which the "
-              f"'{extra}' extra installs: pip install 'mpa-gym[{extra}]'", file=sys.stderr)
+        print(f"mpa-gym {a.command}: error: needs {top}, which the '{EXTRAS[top]}' extra "
+              f"installs: pip install 'mpa-gym[{EXTRAS[top]}]'", file=sys.stderr)
         return 2
     except (ValueError, FileNotFoundError) as e:  # bad input: names the field, value and range
         print(f"mpa-gym {a.command}: error: {e}", file=sys.stderr)

@@ -1,5 +1,5 @@
 """A spawned worker process on the second core, for work that runs beside the main process:
-training's held-out evaluations (``mpa_gym.agents.training.train.EvalWorker``) and the report's
+training's held-out evaluations (``mpa_gym.agents.training.callbacks.EvalWorker``) and the report's
 robustness sweep (``mpa_gym.agents.evaluation.evaluate.Background``).
 
 What it guarantees, each tested with real processes and signals:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -10,6 +11,7 @@ import sys
 import numpy as np
 import pytest
 
+import mpa_gym.agents.cli as cli
 from mpa_gym.agents.cli import main
 from mpa_gym.design import FeedforwardDesign, Reference, mode_pattern
 from mpa_gym.model.params import BAR
@@ -109,3 +111,22 @@ def test_emulate_stops_on_sigterm_with_the_documented_exit_code():
     assert proc.returncode == 143, err
     assert "interrupted by SIGTERM" in err and "Traceback" not in err
     assert "commands" in json.loads(out)
+
+
+def test_a_missing_optional_package_names_its_extra(monkeypatch, capsys):
+    # stable-baselines3 is installed here: a missing submodule of it is a genuine fault (the
+    # traceback shows); the package itself missing is answered with the extra that brings it
+    def needs(name):
+        def run(a):
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return run
+
+    monkeypatch.setattr(cli, "cmd_figures", needs("stable_baselines3.nosuch"))
+    with pytest.raises(ModuleNotFoundError):
+        main(["figures", "--out", "unused"])
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda n, *a: None if n == "stable_baselines3" else real(n, *a))
+    assert main(["figures", "--out", "unused"]) == 2
+    err = capsys.readouterr().err
+    assert "needs stable_baselines3" in err and "pip install 'mpa-gym[train]'" in err

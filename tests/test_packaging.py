@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 import tomllib
+import yaml
 
 import mpa_gym
 from mpa_gym.analysis.scenario import load_scenario, scenario_names
@@ -84,6 +85,8 @@ def test_the_version_is_defined_once():
     assert pyproject["tool"]["setuptools"]["dynamic"]["version"] == {
         "attr": "mpa_gym.__version__"}
     assert mpa_gym.__version__.count(".") == 2
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert str(citation["version"]) == mpa_gym.__version__  # the one place it is repeated
 
 
 def test_sub_packages_are_attributes_of_the_package():
