@@ -66,6 +66,9 @@ def _imports(path: Path) -> Iterator[tuple[str, int, bool]]:
 
 def test_every_package_folder_is_listed_for_the_wheel():
     on_disk = {name for name, path in MODULES.items() if path.name == "__init__.py"}
+    # the configs' data-only folders, listed so that setuptools ships their files
+    on_disk |= {f"mpa_gym.configs.{d.name}" for d in (ROOT / "configs").iterdir()
+                if d.is_dir() and not d.name.startswith("__")}
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())
                  ["tool"]["setuptools"]["packages"])
     assert listed == on_disk
