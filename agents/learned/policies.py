@@ -275,8 +275,6 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     rollout's ``--control-hz``) other than its training one.
     """
     if spec == "excite":  # system-identification excitation (mpa_gym.agents.controllers.excite)
-
-
         kw = env_kwargs or {}
         return (ExcitePolicy(make_plan(kw.get("scenario", "nominal"), kw.get("stiffness"),
                                        TaskConfig.from_kwargs(kw.get("task")))),
