@@ -10,12 +10,15 @@ over 0.5 s passing 0.05 mm), on a plant 0.1 kg off the nominal one behind a 30 m
 
 from __future__ import annotations
 
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
 
 import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import main
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.evaluation.episodes import metrics, run_episode
 from mpa_gym.agents.evaluation.evaluate import (
@@ -178,3 +181,17 @@ def test_a_cell_counts_the_share_over_its_own_steps():
     m = cell_metrics(run, 3.0, DT)[0]
     assert m["policy_share"] == pytest.approx(0.75) and m["fallback_s"] == pytest.approx(0.31)
 
+
+def test_the_evaluate_summary_prints_the_hand_overs(runs, tmp_path, capsys):
+    scen = tmp_path / "trip.yaml"
+    scen.write_text(yaml.safe_dump(TRIP))
+    assert main(["evaluate", "--policy", runs[0], "pid", "--scenarios", str(scen),
+                 "--no-robustness", "--out", str(tmp_path / "rep")]) == 0
+    text = capsys.readouterr().out
+    row = json.loads((tmp_path / "rep" / "report.json").read_text())["results"]["trip"]
+    fb = row["w-s0"]["fallback_s"]
+    assert f"w-s0 on trip: pid from {fb:.1f} s; policy " in text
+    assert "w-s0 (alone)" in text.splitlines()[1]  # a column of the table
+    # the table's supervised cell is marked, the policy alone's is not
+    table = next(ln for ln in text.splitlines() if ln.split()[:1] == ["trip"])
+    assert table.count("‡") == 1
