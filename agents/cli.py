@@ -302,6 +302,7 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
         HELDOUT_SCENARIOS,
         PAPER_SCENARIOS,
         evaluate,
+        hand_over_lines,
         write_report,
     )
 
@@ -315,6 +316,7 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     data = json.loads(paths["json"].read_text())
     return {"results": data["results"], "robustness": data.get("robustness"),
             "groups": data.get("groups") or {}, "no_harm": data.get("no_harm") or {},
+            "stages": data.get("stages") or {}, "hand_overs": hand_over_lines(report),
             "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
             "plots": str(paths["plots"])}
 
@@ -328,11 +330,20 @@ def show_evaluate(o: dict[str, Any]) -> str:
         lo, hi = a[f"{key}_ci"]
         return f"{a[key]:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
 
+    def took(m: dict[str, Any]) -> str:  # a figure a fallback had a hand in
+        return " ‡" if m.get("fallback_s") is not None else ""
+
     rows = [[sc] + [f"{row[c]['position_rmse_mm']:.3f} / {row[c]['stiffness_rmse_pct']:.1f}"
-                    for c in ctrls]
+                    + took(row[c]) for c in ctrls]
             + [f"{iv(g['results'][sc], 'position_rmse_mm', '.3f')} / "
-               f"{iv(g['results'][sc], 'stiffness_rmse_pct', '.1f')}" for g in groups.values()]
+               f"{iv(g['results'][sc], 'stiffness_rmse_pct', '.1f')}"
+               + (f" ‡{g['results'][sc]['fallback_runs']}/{g['results'][sc]['n_runs']}"
+                  if g["results"][sc].get("fallback_runs") else "") for g in groups.values()]
             for sc, row in res.items()]
+    handed = [f"  {line}" for line in o.get("hand_overs") or []]
+    handed += [f"  {g} on {sc}: the fallback took over in {a['fallback_runs']} of "
+               f"{a['n_runs']} runs" for g, v in groups.items()
+               for sc, a in v["results"].items() if a.get("fallback_runs")]
     levels = (o.get("robustness") or {}).get("levels") or {}
     extra = ""
     if levels:
@@ -344,6 +355,11 @@ def show_evaluate(o: dict[str, Any]) -> str:
     for ctrl, a in (o.get("no_harm") or {}).items():
         extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
                   "cases" + (" (listed in the report)" if a["harm"] else ""))
+    if o.get("stages"):
+        extra += ("\nhand-overs (‡: the supervised loop's figure, not the policy's; "
+                  "'<run> (alone)': the policy without its supervisor): "
+                  + ("\n" + "\n".join(handed) if handed else "none, the policies drove "
+                     "every step"))
     head = "position RMSE [mm] / stiffness RMSE [% of k̂], last 3 periods"
     if groups:
         head += "; several runs of one config: IQM [95 % CI] over the runs"
@@ -396,10 +412,13 @@ def show_tune(o: dict[str, Any]) -> str:
     lines = [f"study {o['study_name']}: {o['n_trials']} trials "
              + ", ".join(f"{n} {k.lower()}" for k, n in sorted(o["states"].items()))
              + f"; {o['by_this_worker']} finished by this worker",
-             f"best trials ({' / '.join(o['objectives'])}):"]
+             f"best trials ({' / '.join(o['objectives'])}, of the policy alone):"]
     for t in o["pareto_front"]:
         vals = ", ".join(f"{k} {v:.4f}" for k, v in t["values"].items())
-        lines.append(f"  #{t['number']}: {vals}; {t['wall_s']:.0f} s; {t['params']}")
+        hand = t.get("hand_overs")
+        lines.append(f"  #{t['number']}: {vals}; {t['wall_s']:.0f} s; "
+                     + ("" if hand is None else f"supervised: {hand} held-out episode(s) "
+                        "handed to the fallback; ") + f"{t['params']}")
     return "\n".join(lines)
 
 
@@ -499,6 +518,10 @@ def show_rollout(o: dict[str, Any]) -> str:
                      f"{m['position_max_mm']:.3f} mm, stiffness RMSE "
                      f"{m['stiffness_rmse_pct']:.2f} %, saturation {m['saturation_pct']:.1f} %"
                      + (f", STOPPED: {m['fault']}" if "fault" in m else ""))
+        if o.get("stages"):  # a supervised run: who drove
+            lines.append(f"  hand-over: {m['hand_overs']} (the figures above are the "
+                         "supervised loop's)" if m.get("hand_overs") else
+                         "  no hand-over: the policy drove every step")
     t = o["timing"]
     ms = lambda v: "–" if v is None or v != v else f"{v:.3f} ms"  # noqa: E731
     lines.append(f"loop {t['control_hz']:g} Hz: {t['overruns']} overruns in {t['steps']} steps, "

@@ -15,6 +15,7 @@ import yaml
 from conftest import REALTIME, serving
 
 import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import show_rollout
 from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
@@ -536,6 +537,13 @@ def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path)
     assert [e["t_s"] for e in events] == [steps[first]["t_s"], steps[last]["t_s"]]
     assert out["episodes"][0]["fallback_s"] == steps[first]["t_s"]
     assert out["episodes"][0]["last_resort_s"] == steps[last]["t_s"]
+    # the summary says who drove: the policy its first steps only
+    assert out["stages"] == ["policy", "pid", "afc"]
+    assert out["episodes"][0]["policy_share"] == pytest.approx(first / len(steps), abs=1e-12)
+    said = (f"pid from {steps[first]['t_s']:.1f} s, afc from {steps[last]['t_s']:.1f} s; "
+            f"policy {100 * first / len(steps):.0f} % of steps")
+    assert out["episodes"][0]["hand_overs"] == said
+    assert f"hand-over: {said}" in show_rollout(out)
 
 
 # --- today's flat sections keep their numbers ---------------------------------------------

@@ -22,7 +22,9 @@ import yaml
 from optuna.trial import TrialState
 
 from mpa_gym.agents.cli import main
+from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.learned.config import ConfigError, load_config
+from mpa_gym.agents.learned.policies import ALONE
 from mpa_gym.agents.training.tune import (
     DEFAULT_SPACE,
     apply_params,
@@ -180,6 +182,32 @@ def test_position_objective_reports_and_prunes_per_seed_step(tmp_path):
     # seed 0 evaluated at 0 and 128 steps, seed 1 at 129 + 0 and 129 + 128
     assert sorted(t.intermediate_values) == [0, 128, 129, 257]
     assert len(t.user_attrs["per_seed"]) == 2 and t.user_attrs["stiffness_err_pct"] > 0
+
+
+def test_a_trial_scores_its_policy_alone_and_counts_its_hand_overs(tmp_path):
+    # A supervisor with a hair trigger (the error's RMS over 0.5 s passing 0.05 mm) hands the
+    # held-out episode (a plant 0.1 kg off, behind a 30 ms lag) to pid. The
+    # trial's values are the policy's own: its run evaluated without the supervisor, in a
+    # report of its own; the supervised run's hand-over is recorded.
+    path = tiny_tune_config(tmp_path / "c.yaml")
+    doc = yaml.safe_load(path.read_text())
+    doc["mpa_gym"]["supervisor"]["monitors"]["divergence"] = {
+        "level_mm": 0.05, "window_s": 0.5, "clip_mm": None, "arm_periods": 0}
+    path.write_text(yaml.safe_dump(doc))
+    held = str(short_heldout(tmp_path / "h.yaml"))
+    db = f"sqlite:///{tmp_path}/s.db"
+    out = tune(path, db, "h", n_trials=1, heldout=[held], out_dir=tmp_path / "runs")
+    t = optuna.load_study(study_name="h", storage=db).trials[0]
+    assert t.user_attrs["hand_overs"] == 1 and t.user_attrs["per_seed"][0]["hand_overs"] == 1
+    assert out["pareto_front"][0]["hand_overs"] == 1
+    run = t.user_attrs["run_dirs"][0]
+    seed = load_config(Path(run) / "config.yaml").eval_seed
+    alone = evaluate([run + ALONE], [held], seed)["results"]["short_heldout"]
+    supervised = evaluate([run], [held], seed)["results"]["short_heldout"]
+    assert t.values[0] == alone[f"{Path(run).name} (alone)"]["position_rmse_mm"]
+    assert t.values[1] == alone[f"{Path(run).name} (alone)"]["stiffness_rmse_pct"]
+    assert supervised[Path(run).name]["fallback_s"] is not None
+    assert t.values[0] != supervised[Path(run).name]["position_rmse_mm"]
 
 
 # ------------------------------------------------------------------------ PostgreSQL

@@ -27,7 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
-from mpa_gym.agents.controllers.supervisor import take_over_times, took_over
+from mpa_gym.agents.controllers.supervisor import took_over, who_drove
 from mpa_gym.analysis.simulate import metric_window
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
@@ -222,5 +222,5 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
         "recovery_s": None if impulse_end_s is None else recovery_s(trace.t, e, impulse_end_s),
         "return": float(trace.rewards.sum()),
         "terminated": trace.terminated,
-        **take_over_times(trace.t, trace.fallback),
+        **who_drove(trace.t, trace.fallback),
     }

@@ -13,7 +13,18 @@ window `mpa-gym simulate` uses) unless said otherwise:
 - ``return``: the episode's summed reward; ``terminated``: whether the leg left its bounds;
 - ``fallback_s``: for a run under a ``supervisor`` (``mpa_gym.agents.controllers.supervisor``), the
   time its fallback took over (``None``: it never did, or the controller has no supervisor);
-  ``last_resort_s`` the time its last resort did.
+  ``last_resort_s`` the time its last resort did;
+- ``policy_share``: the share of the episode's steps the learned policy drove (its supervisor's
+  stage was the policy's); 1.0 where nothing took over, so for every baseline and every
+  unsupervised policy.
+
+Who produced a figure is always said. A run folder whose config has a supervisor is evaluated
+twice (``mpa_gym.agents.learned.policies.with_alone``): as given, the supervised system (its
+row keeps the run's name), and as ``RUN_DIR:alone``, the policy without its supervisor (row
+``<run> (alone)``). Groups of runs, the no-harm audit and the sweep have both side by side; the
+Markdown tables mark with ‡ every figure of an episode in which a fallback drove (who, from
+when, the policy's share of steps), the groups say in how many runs a hand-over happened, and
+the plots draw a line where each supervised controller's fallback and last resort took over.
 
 With ``robustness=True`` the report also holds the robustness sweep of
 ``mpa_gym.agents.evaluation.robustness`` (grids of real-rig effects, easy / medium / hard levels)
@@ -30,12 +41,18 @@ import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
+from mpa_gym.agents.controllers.supervisor import (
+    HAND_OVERS,
+    Supervised,
+    hand_overs,
+    take_over_times,
+)
 from mpa_gym.agents.evaluation.episodes import (
     RECOVERY_BAND_M,
     Job,
@@ -58,11 +75,14 @@ from mpa_gym.agents.evaluation.seeds import (
     require_stats,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
-from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.learned.policies import load_policy, run_of, spec_label, with_alone
 from mpa_gym.agents.learned.runs import read_eval_history
 from mpa_gym.agents.worker import Worker, WorkerStopped
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 PAPER_SCENARIOS = ["nominal", "initial_error", "impulse", "gamma_mismatch", "mass_mismatch",
                    "load_1kg", "kmax", "kmin"]
@@ -79,8 +99,10 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     ``batched=False`` runs them one after another
     (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers. ``plots_dir``: the
     scenario plots (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
-    :func:`write_report` after it (``report["plots"]``)."""
+    :func:`write_report` after it (``report["plots"]``). A supervised run folder is evaluated
+    also alone (module docstring)."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
+    policies = with_alone(policies)
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
         require_stats()
@@ -108,7 +130,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
-                                [_label(p) for p in policies if p not in BASELINES])
+                                [spec_label(p) for p in policies if p not in BASELINES])
     return report
 
 
@@ -127,7 +149,7 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
                 policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
                                            "MPALegResidual-v0", None)
             jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
-            keys.append((sc, _label(spec)))
+            keys.append((sc, spec_label(spec)))
     if batched:
         trs = run_episodes(jobs, seed)
     else:
@@ -143,9 +165,12 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
         traces.setdefault(sc.name, {})[label] = tr
     return {"results": results, "traces": traces, "seed": seed,
             "learning": learning_speed(policies, results),
-            "controllers": {_label(p): tuned_on(p) for p in policies},
-            "supervisors": {_label(p): cfg.supervisor.describe()
-                            for p, (_, _, cfg) in learned.items() if cfg.supervisor},
+            "controllers": {spec_label(p): tuned_on(p) for p in policies},
+            "supervisors": {spec_label(p): cfg.supervisor.describe()
+                            for p, (pol, _, cfg) in learned.items()
+                            if isinstance(pol, Supervised)},
+            "stages": {spec_label(p): [s.controller for s in cfg.supervisor.stages]
+                       for p, (pol, _, cfg) in learned.items() if isinstance(pol, Supervised)},
             "groups": seed_groups(groups, results)}
 
 
@@ -197,9 +222,9 @@ def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, A
 
     out: dict[str, Any] = {}
     for runs in groups:
-        label = group_label(runs)
-        out[label] = {"runs": [_label(r) for r in runs], "results": aggregate(results, runs),
-                      "curves": learning_curves(runs)}
+        out[group_label(runs)] = {"runs": [spec_label(r) for r in runs],
+                                  "results": aggregate(results, runs),
+                                  "curves": learning_curves(runs)}
     return out
 
 
@@ -223,7 +248,7 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
             reached = [t for t, r in curve if r <= target]
             entry.update(ff_position_rmse_mm=target,
                          steps_to_ff_score=reached[0] if reached else None)
-        out[_label(spec)] = entry
+        out[spec_label(spec)] = entry
     return out
 
 
@@ -232,18 +257,16 @@ def tuned_on(spec: str) -> str:
 
     if spec in TUNED_ON:
         return TUNED_ON[spec]
-    if Path(spec).is_dir():
-        policy, _, cfg = load_policy(spec)
-
+    run, supervised = run_of(spec)
+    if run is not None:
+        policy, _, cfg = load_policy(str(run), supervised=False)
         rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
         steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
         return (f"PPO, {steps} env steps on the training scenario of its config "
-                f"(randomize: {rnd.describe()})")
+                f"(randomize: {rnd.describe()})"
+                + ("" if supervised or cfg.supervisor is None else
+                   "; evaluated alone, without its config's supervisor"))
     return "–"
-
-
-def _label(spec: str) -> str:
-    return Path(spec).name if Path(spec).is_dir() else spec
 
 
 COLUMNS = [("position_rmse_mm", "position RMSE [mm]"), ("position_max_mm", "max |X − X̂| [mm]"),
@@ -251,12 +274,17 @@ COLUMNS = [("position_rmse_mm", "position RMSE [mm]"), ("position_max_mm", "max 
            ("saturation_pct", "pressure saturation [% of steps]"),
            ("recovery_s", "recovery after impulse [s]"), ("return", "return"),
            ("fallback_s", "supervisor's fallback took over at [s]"),
-           ("last_resort_s", "supervisor's last resort took over at [s]")]
+           ("last_resort_s", "supervisor's last resort took over at [s]"),
+           ("policy_share", "share of steps the learned policy drove")]
+WHO_DROVE = ("fallback_s", "last_resort_s", "policy_share")  # columns that say who drove
+def _fmt(v: Any) -> str:
+    return "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
 
 
 def markdown(report: dict[str, Any]) -> str:
     res = report["results"]
     groups = report.get("groups") or {}
+    stages = report.get("stages") or {}
     in_group = {r for g in groups.values() for r in g["runs"]}
     ctrls = [c for c in next(iter(res.values())) if c not in in_group]
     out = ["# Evaluation report", "",
@@ -272,6 +300,13 @@ def markdown(report: dict[str, Any]) -> str:
     if any(Path(c).name == c and c not in BASELINES for c in ctrls):
         out.append("A learned policy given as a single run has no interval (n = 1): train "
                    "several seeds (`mpa-gym train --seeds 0 1 2 3 4`) and pass all the runs.")
+    if report.get("supervisors"):
+        out.append("Who drove: a run under a supervisor is shown twice, as the supervised "
+                   "system (its name) and as the policy without its supervisor "
+                   "(`<run> (alone)`, the policy's own figures). ‡: a supervisor's fallback "
+                   "drove part of this episode (which controller, from when, and the share of "
+                   "steps the learned policy drove): the figure is the supervised loop's, not "
+                   "the policy's; for a group, in how many of its runs that happened.")
     out.append("")
     if report.get("controllers"):
         out += ["## Controllers", "", "| controller | tuned / trained on |", "|---|---|"]
@@ -279,7 +314,7 @@ def markdown(report: dict[str, Any]) -> str:
         out += [f"| {c} | {d}" + (f"; under a supervisor: {sup[c]}" if c in sup else "") + " |"
                 for c, d in report["controllers"].items()] + [""]
     for key, title in COLUMNS:
-        if key == "fallback_s" and not report.get("supervisors"):
+        if key in WHO_DROVE and not report.get("supervisors"):
             continue
         if key == "last_resort_s" and not any(m.get(key) is not None for row in res.values()
                                               for m in row.values()):
@@ -290,13 +325,12 @@ def markdown(report: dict[str, Any]) -> str:
         for sc, row in res.items():
             cells = []
             for c in ctrls:
-                v = row[c][key]
-                cell = "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
-                cells.append(cell + (" (terminated)" if row[c]["terminated"] else ""))
+                cell = _fmt(row[c].get(key)) + (" (terminated)" if row[c]["terminated"] else "")
+                took = "" if key in WHO_DROVE else hand_overs(row[c], stages.get(c))
+                cells.append(cell + (f" ‡ {took}" if took else ""))
             for g in groups.values():
                 a = g["results"][sc]
-                v = a.get(key)
-                cell = "–" if v is None else ("never" if v == math.inf else f"{v:.3f}")
+                cell = _fmt(a.get(key))
                 if f"{key}_ci" in a:
                     lo, hi = a[f"{key}_ci"]
                     cell += f" [{lo:.3f}, {hi:.3f}]"
@@ -304,12 +338,15 @@ def markdown(report: dict[str, Any]) -> str:
                     cell = f"in {a[key.removesuffix('_s') + '_runs']} of {a['n_runs']} runs"
                 if a["terminated"]:
                     cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
+                if key not in WHO_DROVE and a.get("fallback_runs"):
+                    cell += f" ‡ hand-over in {a['fallback_runs']} of {a['n_runs']} runs"
                 cells.append(cell)
             out.append(f"| {sc} | " + " | ".join(cells) + " |")
         out.append("")
     if any(g["curves"] for g in groups.values()):
         out += ["## Learning curves", "", "IQM and 95 % CI of the held-out position RMSE over "
-                "each group's runs at every evaluation during training: "
+                "each group's runs at every evaluation during training (the policy alone: "
+                "training's evaluations run without a supervisor): "
                 "`plots/learning_curves.png`.", ""]
     learning = report.get("learning") or {}
     if learning:
@@ -334,36 +371,65 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
-def plot(report: dict[str, Any], out_dir: Path) -> list[Path]:
-    """One PNG per scenario: X vs X̂, k vs k̂ and both pressures for every controller."""
+def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
+                    stages: dict[str, list[str]] | None = None) -> Figure:
+    """One scenario's figure: X vs X̂, the error X − X̂ [mm] in a panel of its own, k vs k̂ and
+    both pressures for every controller; a vertical line in every panel, in the controller's
+    colour, where a supervised controller's fallback (dashed) and last resort (dotted) took over,
+    labelled in the error panel (``stages``: the supervisor's controllers, ``report["stages"]``)."""
     from matplotlib.figure import Figure
 
+    # fixed margins: a constrained layout measured every text box of the 14 figures of a
+    # report again at each draw, half of the plotting time
+    fig = Figure(figsize=(9, 9.5))
+    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.05, top=0.96, hspace=0.12)
+    ax = fig.subplots(5, 1, sharex=True)
+    first = next(iter(per_ctrl.values()))
+    ax[0].plot(first.t, first.x_ref, "k--", lw=1, label="X̂")
+    ax[2].plot(first.t, first.k_ref, "k--", lw=1, label="k̂")
+    for i, (name, tr) in enumerate(per_ctrl.items()):
+        c = f"C{i}"
+        ax[0].plot(tr.t, tr.x, color=c, lw=1, label=name)
+        ax[1].plot(tr.t, (tr.x - tr.x_ref) * 1e3, color=c, lw=1, label=name)
+        ax[2].plot(tr.t, tr.k, color=c, lw=1, label=name)
+        ax[3].plot(tr.t, tr.pressure_bar[:, 0], color=c, lw=1, label=name)
+        ax[4].plot(tr.t, tr.pressure_bar[:, 1], color=c, lw=1, label=name)
+        names = (stages or {}).get(name)
+        for (key, stage), ls in zip(HAND_OVERS, ("--", ":"), strict=True):
+            t = take_over_times(tr.t, tr.fallback)[key]
+            if t is None:
+                continue
+            who = names[stage] if names else key.removesuffix("_s")
+            for a in ax:
+                a.axvline(t, color=c, ls=ls, lw=1.2,
+                          label=f"{name}: {who} from {t:.1f} s" if a is ax[1] else None)
+    ax[0].set(ylabel="X [m]", title=f"scenario {sc}")
+    ax[1].set(ylabel="X − X̂ [mm]")
+    ax[2].set(ylabel="k [N/m]")
+    ax[3].set(ylabel="P'_e [bar]")
+    ax[4].set(ylabel="P'_f [bar]", xlabel="time [s]")
+    for a in ax:
+        a.legend(loc="upper right", fontsize=7, ncol=4)
+    return fig
+
+
+def plot(report: dict[str, Any], out_dir: Path) -> list[Path]:
+    """One PNG per scenario (:func:`scenario_figure`)."""
     paths = []
     for sc, per_ctrl in report["traces"].items():
-        # fixed margins: a constrained layout measured every text box of the 14 figures of a
-        # report again at each draw, half of the plotting time
-        fig = Figure(figsize=(9, 8))
-        fig.subplots_adjust(left=0.09, right=0.98, bottom=0.06, top=0.96, hspace=0.12)
-        ax = fig.subplots(4, 1, sharex=True)
-        first = next(iter(per_ctrl.values()))
-        ax[0].plot(first.t, first.x_ref, "k--", lw=1, label="X̂")
-        ax[1].plot(first.t, first.k_ref, "k--", lw=1, label="k̂")
-        for i, (name, tr) in enumerate(per_ctrl.items()):
-            c = f"C{i}"
-            ax[0].plot(tr.t, tr.x, color=c, lw=1, label=name)
-            ax[1].plot(tr.t, tr.k, color=c, lw=1, label=name)
-            ax[2].plot(tr.t, tr.pressure_bar[:, 0], color=c, lw=1, label=name)
-            ax[3].plot(tr.t, tr.pressure_bar[:, 1], color=c, lw=1, label=name)
-        ax[0].set(ylabel="X [m]", title=f"scenario {sc}")
-        ax[1].set(ylabel="k [N/m]")
-        ax[2].set(ylabel="P'_e [bar]")
-        ax[3].set(ylabel="P'_f [bar]", xlabel="time [s]")
-        for a in ax:
-            a.legend(loc="upper right", fontsize=7, ncol=4)
         path = out_dir / f"{sc}.png"
-        fig.savefig(path, dpi=90)
+        scenario_figure(sc, per_ctrl, report.get("stages")).savefig(path, dpi=90)
         paths.append(path)
     return paths
+
+
+def hand_over_lines(report: dict[str, Any]) -> list[str]:
+    """``<controller> on <scenario>: pid from 9.5 s; policy 79 % of steps`` for every row of a
+    report in which a supervisor's fallback took over (``mpa-gym evaluate``'s summary)."""
+    stages = report.get("stages") or {}
+    return [f"{c} on {sc}: {hand_overs(m, stages.get(c))}"
+            for sc, row in report["results"].items() for c, m in row.items()
+            if m.get("fallback_s") is not None]
 
 
 def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
@@ -374,6 +440,7 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "learning": report.get("learning", {}),
             "controllers": report.get("controllers", {}),
             "supervisors": report.get("supervisors", {}),
+            "stages": report.get("stages", {}),
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):

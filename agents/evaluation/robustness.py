@@ -13,7 +13,15 @@ of a 25-leg batch. Per cell and controller, over the last three reference period
   another frequency or a growing oscillation does not;
 - ``unstable``: ``aperiodic_rmse_mm`` > ``UNSTABLE_APERIODIC_MM`` (1 mm, 5 % of the reference's
   20 mm amplitude) or the episode terminated (the leg left its bounds or the model's domain);
-- ``terminated``.
+- ``terminated``;
+- who drove (``mpa_gym.agents.controllers.supervisor.who_drove``): ``fallback_s`` and
+  ``last_resort_s``, when a supervisor's fallback and last resort took over (None: they did
+  not, or there is no supervisor), and ``policy_share``, the share of the episode's steps the
+  learned policy drove (1.0 where nothing took over: every baseline and unsupervised policy).
+
+A supervised run folder is swept twice, as given (the supervised system) and as
+``RUN_DIR:alone`` (``mpa_gym.agents.learned.policies.ALONE``: the policy without its
+supervisor), so that the grids and the no-harm audit show both side by side.
 
 A learned controller's cells are marked ``held_out`` where a value lies outside what its
 training scenario draws (its ``randomize`` range, or its fixed plant value).
@@ -37,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
-from mpa_gym.agents.controllers.supervisor import take_over_times
+from mpa_gym.agents.controllers.supervisor import who_drove
 from mpa_gym.agents.evaluation.episodes import (
     Job,
     eval_task,
@@ -45,7 +53,7 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episodes,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
-from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.learned.policies import load_policy, run_of, spec_label, with_alone
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 from mpa_gym.analysis.simulate import METRIC_PERIODS, whole_periods
 
@@ -116,9 +124,9 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
               ) -> dict[str, np.ndarray]:
     """One episode of controller ``spec`` (a name, a run folder, or a policy object for
     ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
-    each step until the episode ends (NaN after a termination), whether it terminated, and per
-    step whether a supervisor's fallback drove it (``mpa_gym.agents.controllers.supervisor``; never,
-    without one)."""
+    each step until the episode ends (NaN after a termination), whether it terminated, its
+    number of steps (``steps``), and per step the supervisor's stage that drove it
+    (``fallback``, ``mpa_gym.agents.controllers.supervisor``; 0, the policy, without one)."""
     return run_batches([spec], sc, plants, seed)[0]
 
 
@@ -153,7 +161,8 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
             if tr.fallback is not None:
                 fb[:len(tr.t), j] = tr.fallback
         out.append({"t": dt * np.arange(1, steps + 1), "x": x, "x_ref": xr,
-                    "terminated": np.array([tr.terminated for tr in mine]), "fallback": fb})
+                    "terminated": np.array([tr.terminated for tr in mine]), "fallback": fb,
+                    "steps": np.array([len(tr.t) for tr in mine])})
     return out
 
 
@@ -163,7 +172,8 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
     e = run["x"] - run["x_ref"]
     out = []
     for i in range(e.shape[1]):
-        took = take_over_times(run["t"], run["fallback"][:, i] if "fallback" in run else None)
+        n = int(run["steps"][i]) if "steps" in run else len(run["t"])  # the leg's own steps
+        took = who_drove(run["t"][:n], run["fallback"][:n, i] if "fallback" in run else None)
         if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
                         "terminated": bool(run["terminated"][i]), **took})
@@ -180,9 +190,10 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
 def training_ranges(spec: str) -> dict[str, tuple[float, float]] | None:
     """What a run folder's training scenario draws, field -> (low, high); None for a
     baseline (no training plants)."""
-    if not Path(spec).is_dir():
+    run, _ = run_of(spec)
+    if run is None:
         return None
-    _, _, cfg = load_policy(spec)
+    _, _, cfg = load_policy(str(run), supervised=False)
     sc = load_scenario(cfg.env_kwargs["scenario"])
     ranges = {k: (v, v) for k, v in dataclasses.asdict(sc.plant).items() if v is not None}
     ranges.update(sc.randomize.span(sc.plant))
@@ -208,14 +219,15 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
                kicks: dict[str, dict[str, float]] | None = None) -> dict[str, Any]:
     """The sweep: ``{"grids": {name: {...}}, "levels": {...}, "kicks": {...}}`` (module
     docstring); by default ``GRIDS``, ``LEVELS``, ``KICKS`` and ``LEVEL_KICK`` on the nominal
-    scenario."""
+    scenario. A supervised run folder is swept also alone (``with_alone``)."""
+    policies = with_alone(policies)
     grids = GRIDS if grids is None else grids
     levels = LEVELS if levels is None else levels
     kicks = KICKS if kicks is None else kicks
     kick = LEVEL_KICK if kick is None else kick
     base = load_scenario(scenario)
     period = base.reference.period
-    labels = {p: Path(p).name if Path(p).is_dir() else p for p in policies}
+    labels = {p: spec_label(p) for p in policies}
     ranges = {p: training_ranges(p) for p in policies}
     out: dict[str, Any] = {"scenario": base.name, "seed": seed,
                            "unstable_aperiodic_mm": UNSTABLE_APERIODIC_MM, "grids": {},
@@ -316,6 +328,8 @@ def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[s
 def _cell(m: dict[str, Any]) -> str:
     fb, lr = m.get("fallback_s"), m.get("last_resort_s")
     took = ("" if fb is None else f" ‡{fb:.1f} s") + ("" if lr is None else f" §{lr:.1f} s")
+    if fb is not None and m.get("policy_share") is not None:
+        took += f" (policy {m['policy_share'] * 100:.0f} %)"
     if m["terminated"]:
         return "terminated" + took
     s = f"{m['position_rmse_mm']:.3f}"
@@ -330,8 +344,10 @@ def markdown(rob: dict[str, Any]) -> list[str]:
            f"with the reference's period exceeds {rob['unstable_aperiodic_mm']:g} mm RMS (a "
            "limit cycle or a divergence); terminated: the leg left its bounds. A learned "
            "controller's cells outside its training ranges are marked †; ‡t s: its "
-           "supervisor's fallback took over at t s, §t s: its last resort did (the figure is "
-           "the supervised loop's).", ""]
+           "supervisor's fallback took over at t s, §t s: its last resort did, (policy p %): "
+           "the share of steps the learned policy drove (the figure is the supervised "
+           "loop's); `(alone)`: the same run without its supervisor, the policy's own "
+           "figures.", ""]
     for name, g in rob["grids"].items():
         rf, cf = g["rows"]["field"], g["cols"]["field"]
         out += [f"### {name}", "", f"Rows `{rf}`, columns `{cf}`; every cell also has "
@@ -378,7 +394,9 @@ def no_harm_markdown(audit: dict[str, Any]) -> list[str]:
            f"{HARM_RATIO:g}× the best feedback baseline ({', '.join(FEEDBACK_BASELINES)}), on "
            f"any scenario, grid cell, level or kick plant (either bound raised to "
            f"{HARM_FLOOR_MM:g} mm), nor be unstable where the feedforward is stable. "
-           "† : outside the controller's training ranges.", ""]
+           "† : outside the controller's training ranges. A supervised run is audited twice: "
+           "as the supervised system and, `(alone)`, as the policy without its supervisor.",
+           ""]
     for ctrl, a in audit.items():
         out.append(f"**{ctrl}**: {len(a['harm'])} of {a['checked']} cases break a bound.")
         if a["harm"]:

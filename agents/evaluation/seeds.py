@@ -26,11 +26,12 @@ import numpy as np
 import yaml
 
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG
+from mpa_gym.agents.learned.policies import ALONE_LABEL, run_of, spec_label
 
 BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it
 CI = 0.95
 METRICS = ("position_rmse_mm", "position_max_mm", "stiffness_rmse_pct", "saturation_pct",
-           "return")
+           "return", "policy_share")
 
 
 def cores() -> int:
@@ -101,12 +102,15 @@ def config_key(run: str | Path) -> str:
 
 
 def group_runs(policies: list[str]) -> list[list[str]]:
-    """The run folders among ``policies`` grouped by config (:func:`config_key`); groups of
-    two or more runs only (a lone run of its config has no interval)."""
-    by_cfg: dict[str, list[str]] = {}
+    """The run folders among ``policies`` grouped by config (:func:`config_key`) and by how
+    they run: supervised (as given) and ``RUN_DIR:alone`` (the policy alone,
+    ``mpa_gym.agents.learned.policies.ALONE``) are separate groups, so each has its own
+    interval. Groups of two or more runs only (a lone run of its config has no interval)."""
+    by_cfg: dict[tuple[str, bool], list[str]] = {}
     for spec in policies:
-        if Path(spec).is_dir():
-            by_cfg.setdefault(config_key(spec), []).append(spec)
+        run, supervised = run_of(spec)
+        if run is not None:
+            by_cfg.setdefault((config_key(run), supervised), []).append(spec)
     return [runs for runs in by_cfg.values() if len(runs) > 1]
 
 
@@ -121,10 +125,13 @@ def require_stats() -> None:
 
 
 def group_label(runs: list[str]) -> str:
-    """``name`` for runs ``name-s0``, ``name-s1``, … (else the first folder's name + ``…``)."""
-    names = [Path(r).name for r in runs]
+    """``name`` for runs ``name-s0``, ``name-s1``, … (else the first folder's name + ``…``);
+    ``name (alone)`` for a group of ``RUN_DIR:alone``."""
+    folders = [run_of(r) for r in runs]
+    names = [f.name if f is not None else r for (f, _), r in zip(folders, runs, strict=True)]
     stems = {n.rsplit("-s", 1)[0] if n.rsplit("-s", 1)[-1].isdigit() else n for n in names}
-    return stems.pop() if len(stems) == 1 else f"{names[0]}…"
+    alone = "" if folders[0][1] else ALONE_LABEL
+    return (stems.pop() if len(stems) == 1 else f"{names[0]}…") + alone
 
 
 def iqm_ci(scores: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -146,10 +153,11 @@ def iqm_ci(scores: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, dict[str, Any]]:
     """Per scenario, for the group of ``runs`` (their labels in ``results``): each metric's
-    IQM over the runs and ``<metric>_ci`` [low, high], plus ``n_runs``, ``terminated`` (how
-    many runs terminated), ``fallback_runs`` and ``last_resort_runs`` (in how many a
-    supervisor's fallback, and its last resort, took over)."""
-    labels = [_label(r) for r in runs]
+    IQM over the runs and ``<metric>_ci`` [low, high] (``policy_share`` among them: the share of
+    steps the learned policy drove), plus ``n_runs``, ``terminated`` (how many runs
+    terminated), ``fallback_runs`` and ``last_resort_runs`` (in how many a supervisor's
+    fallback, and its last resort, took over)."""
+    labels = [spec_label(r) for r in runs]
     scen = list(results)
     out: dict[str, dict[str, Any]] = {sc: {"n_runs": len(runs)} for sc in scen}
     for key in METRICS:
@@ -209,7 +217,3 @@ def plot_curves(curves: dict[str, dict[str, Any]], path: Path) -> Path:
     axes[0].legend(fontsize=7)
     fig.savefig(path, dpi=90)
     return path
-
-
-def _label(spec: str) -> str:
-    return Path(spec).name if Path(spec).is_dir() else spec

@@ -1,5 +1,13 @@
 """Learned policies behind the same ``predict`` interface as the baselines, and loading any
-controller by name (``ff``, ``pid``, ``mbfb``) or run folder."""
+controller by name (``ff``, ``pid``, ``mbfb``) or run folder.
+
+A run folder whose config has a ``supervisor`` loads under it (the supervised system: what runs
+on the rig). ``RUN_DIR:alone`` (:data:`ALONE`; ``load_policy(..., supervised=False)`` in code)
+loads the same run without it: the learned policy alone, whose figures are the policy's own
+wherever the supervisor would have handed the loop to its fallback. Reports label it
+``<run> (alone)`` (:func:`spec_label`) and show it beside the supervised run
+(:func:`with_alone`), so that no figure of the fallback passes for the policy's.
+"""
 
 from __future__ import annotations
 
@@ -22,6 +30,51 @@ from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.contract import obs_names
 from mpa_gym.task.plan import make_plan
+
+ALONE = ":alone"  # a run folder's spec suffix: its policy without its supervisor
+ALONE_LABEL = " (alone)"  # what reports append to the run's name for it
+
+
+def run_of(spec: str) -> tuple[Path | None, bool]:
+    """(the run folder of ``spec`` or None for a baseline, whether it runs supervised): a run
+    folder as given runs under its config's supervisor (if it has one); ``RUN_DIR:alone``
+    without it. A folder whose own name ends in ``:alone`` is that folder."""
+    if Path(spec).is_dir():
+        return Path(spec), True
+    if spec.endswith(ALONE) and Path(spec[:-len(ALONE)]).is_dir():
+        return Path(spec[:-len(ALONE)]), False
+    return None, True
+
+
+def spec_label(spec: str) -> str:
+    """A controller's name in reports: a baseline's name, a run folder's name, and for
+    ``RUN_DIR:alone`` the folder's name + `` (alone)``."""
+    run, supervised = run_of(spec)
+    if run is None:
+        return spec
+    return run.name + ("" if supervised else ALONE_LABEL)
+
+
+def has_supervisor(spec: str) -> bool:
+    """Whether ``spec`` is a run folder (as given, not ``:alone``) whose config has a
+    ``supervisor`` section."""
+    run, supervised = run_of(spec)
+    return (run is not None and supervised and (run / "config.yaml").is_file()
+            and load_config(run / "config.yaml").supervisor is not None)
+
+
+def with_alone(specs: list[str]) -> list[str]:
+    """``specs`` with ``RUN_DIR:alone`` after every supervised run folder (one whose config has
+    a ``supervisor``) that is not already followed by it: every report shows the policy alone
+    beside the supervised system. Idempotent."""
+    out: list[str] = []
+    for spec in specs:
+        if spec in out:
+            continue
+        out.append(spec)
+        if has_supervisor(spec) and spec + ALONE not in specs:
+            out.append(spec + ALONE)
+    return out
 
 
 class LearnedPolicy:
@@ -263,16 +316,18 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
                       load_scenario(scenario).reference.period, cfg.supervisor, last)
 
 
-def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False
-                ) -> tuple[Policy, str, Any]:
+def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False,
+                supervised: bool = True) -> tuple[Policy, str, Any]:
     """(policy, env id, run config or None) for ``ff`` / ``pid`` / ``mbfb``, ``excite`` (the
-    identification excitation) or a run folder.
+    identification excitation), a run folder or ``RUN_DIR:alone`` (:data:`ALONE`).
 
     Baselines are built for the env made with ``env_kwargs`` (scenario, stiffness, task); a run
     is loaded ``deployed`` (``load_run``) when asked, wrapped in its config's ``supervisor``
-    if it has one (:func:`supervise`), and refused (``check_control_period``, before its model
-    is loaded) when ``env_kwargs`` sets a ``task.dt_s`` (the control period it will run at:
-    rollout's ``--control-hz``) other than its training one.
+    if it has one (:func:`supervise`) unless ``supervised`` is False or the spec ends in
+    ``:alone`` (the policy alone; its config still holds the section), and refused
+    (``check_control_period``, before its model is loaded) when ``env_kwargs`` sets a
+    ``task.dt_s`` (the control period it will run at: rollout's ``--control-hz``) other than
+    its training one.
     """
     if spec == "excite":  # system-identification excitation (mpa_gym.agents.controllers.excite)
         kw = env_kwargs or {}
@@ -283,13 +338,14 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
         kw = env_kwargs or {}
         return (make_baseline(spec, kw.get("scenario", "nominal"), kw.get("stiffness"),
                               kw.get("task")), "MPALegResidual-v0", None)
-    if Path(spec).is_dir():
+    run, as_given = run_of(spec)
+    if run is not None:
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
-        if dt is not None and (Path(spec) / "config.yaml").is_file():
-            check_control_period(load_config(Path(spec) / "config.yaml"), dt, spec)
-        policy, cfg = load_run(spec, deployed=deployed)
-        if cfg.supervisor is not None:
+        if dt is not None and (run / "config.yaml").is_file():
+            check_control_period(load_config(run / "config.yaml"), dt, run)
+        policy, cfg = load_run(run, deployed=deployed)
+        if cfg.supervisor is not None and supervised and as_given:
             policy = supervise(policy, cfg, env_kwargs)
         return policy, cfg.env_id, cfg
     raise ValueError(f"policy={spec!r} is neither a baseline {sorted(BASELINES)} nor a run "
-                     "folder")
+                     f"folder (or a run folder + {ALONE!r}: its policy without its supervisor)")

@@ -34,7 +34,13 @@ from typing import IO, Any
 
 import numpy as np
 
-from mpa_gym.agents.controllers.supervisor import FALLBACK, POLICY, took_over
+from mpa_gym.agents.controllers.supervisor import (
+    FALLBACK,
+    POLICY,
+    Supervised,
+    hand_overs,
+    took_over,
+)
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
 from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.hardware.emulator import EmulatorProcess
@@ -142,7 +148,11 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             episode_s: float | None = None, seed: int = 0, realtime: bool = False
             ) -> dict[str, Any]:
     """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing, and
-    ``stopped`` (the reason) if the env's safety layer ended an episode early.
+    ``stopped`` (the reason) if the env's safety layer ended an episode early. For a supervised
+    run, ``stages`` names its supervisor's controllers and each episode's metrics say who drove
+    (``policy_share``, ``fallback_s``, ``last_resort_s`` and ``hand_overs``, the same in words:
+    empty where the policy drove every step); ``RUN_DIR:alone`` rolls the policy out without
+    its supervisor.
 
     The episodes run with the garbage collector off (its full collections pause longer than
     the device's watchdog allows); ``realtime`` adds real-time scheduling, as far as permitted
@@ -224,8 +234,13 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             raise
     period = np.array(env.timing["period_s"])
     jitter = np.abs(period - env.cfg.dt_s)
+    stages = ([s.controller for s in run_cfg.supervisor.stages]
+              if isinstance(policy, Supervised) else None)
+    if stages is not None:  # who drove each episode, for the summary
+        for m in results:
+            m["hand_overs"] = hand_overs(m, stages)
     out: dict[str, Any] = {
-        "episodes": results, "log": str(log_path),
+        "episodes": results, "log": str(log_path), "stages": stages,
         "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
                    "steps": len(env.timing["latency_s"]), "realtime": rt_report,
                    "p99_jitter_ms": float(np.percentile(jitter, 99) * 1e3) if jitter.size

@@ -23,8 +23,11 @@ as PostgreSQL, or a journal file on a shared disk).
   as written (user attribute ``base_config``) when its values lie in the space.
 - **Objectives** (both minimised): the held-out position RMSE [mm] and stiffness error [% of k̂],
   each the mean over :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS` (30 s episodes,
-  the report's episode seed) and over the trial's seeds (``--seeds-per-trial``). The Pareto front is
-  the study's ``best_trials``. Wall-clock time [s] per trial is the user attribute ``wall_s``.
+  the report's episode seed) and over the trial's seeds (``--seeds-per-trial``), of the policy
+  alone, without its config's supervisor (:func:`make_objective` says why); the user attribute
+  ``hand_overs`` counts the held-out episodes in which the supervised run's fallback took over.
+  The Pareto front is the study's ``best_trials``. Wall-clock time [s] per trial is the user
+  attribute ``wall_s``.
 - **Pruning**: Optuna prunes single-objective studies only (``Trial.report`` is not defined for
   several objectives). ``--objective position`` makes the study single-objective on the held-out
   position RMSE (the stiffness error is kept as the user attribute ``stiffness_err_pct``) and
@@ -78,6 +81,7 @@ from mpa_gym.agents.learned.config import (
     _literal,
     parse_config,
 )
+from mpa_gym.agents.learned.policies import ALONE, spec_label
 from mpa_gym.agents.training.train import train
 from mpa_gym.files import read_yaml
 
@@ -351,7 +355,17 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
                    n_timesteps: int | None, max_total: int | None, out_dir: Path,
                    worker: str, heldout: list[Any] | None = None
                    ) -> Callable[[optuna.Trial], Any]:
-    """The Optuna objective: train each seed, evaluate on the held-out plants, aggregate."""
+    """The Optuna objective: train each seed, evaluate on the held-out plants, aggregate.
+
+    A trial is scored on its policy alone (the run evaluated without its config's supervisor,
+    ``RUN_DIR:alone``): the study tunes the policy's hyper-parameters, and with the supervisor
+    in the loop a trial whose policy fails scores its fallback's figures (two budgets whose
+    policies both fail would score the same pid number), so the sampler would learn nothing
+    about the policy and could prefer a policy that fails early. The periodic held-out
+    evaluations of training, which the pruner sees, are the policy alone too. The supervised
+    run is evaluated beside it, and each trial records ``hand_overs``: in how many held-out
+    episodes (scenarios × seeds) the supervisor's fallback took over (per seed in
+    ``per_seed``; None for a config without a supervisor)."""
 
     space = parse_space(study_space(data))
     env_id = next(k for k in data if k != "mpa_gym")
@@ -397,15 +411,24 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
             if objective == "position" and trial.should_prune():
                 trial.set_user_attr("wall_s", time.perf_counter() - t0)
                 raise optuna.TrialPruned(f"seed {seed}: below the median of earlier trials")
+            # the policy alone is scored; the supervised run is evaluated beside it (evaluate:
+            # with_alone) for its hand-overs
             res = evaluate([str(run_dir)], heldout, cfg.eval_seed)["results"]
+            alone = spec_label(str(run_dir) + ALONE)
+            scored = alone if alone in next(iter(res.values())) else run_dir.name
             per_seed.append({
-                "position_rmse_mm": _mean([r[run_dir.name]["position_rmse_mm"]
+                "position_rmse_mm": _mean([r[scored]["position_rmse_mm"]
                                            for r in res.values()]),
-                "stiffness_err_pct": _mean([r[run_dir.name]["stiffness_rmse_pct"]
-                                            for r in res.values()])})
-        agg = {k: _mean([p[k] for p in per_seed]) for k in per_seed[0]}
+                "stiffness_err_pct": _mean([r[scored]["stiffness_rmse_pct"]
+                                            for r in res.values()]),
+                "hand_overs": (None if cfg.supervisor is None else
+                               sum(r[run_dir.name]["fallback_s"] is not None
+                                   for r in res.values()))})
+        agg = {k: _mean([p[k] for p in per_seed]) for k in OBJECTIVES["both"]}
         trial.set_user_attr("wall_s", time.perf_counter() - t0)
         trial.set_user_attr("per_seed", per_seed)
+        trial.set_user_attr("hand_overs", None if cfg.supervisor is None else
+                            sum(p["hand_overs"] for p in per_seed))
         trial.set_user_attr("run_dirs", run_dirs)
         trial.set_user_attr("stiffness_err_pct", agg["stiffness_err_pct"])
         values = [agg[n] for n in names]
@@ -535,7 +558,8 @@ def summary(study: optuna.Study, worker: str | None = None) -> dict[str, Any]:
                               and t.state in (TrialState.COMPLETE, TrialState.PRUNED)),
         "pareto_front": [{"number": t.number, "values": dict(zip(names, t.values, strict=True)),
                           "params": t.params, "wall_s": t.user_attrs.get("wall_s"),
-                          "stiffness_err_pct": t.user_attrs.get("stiffness_err_pct")}
+                          "stiffness_err_pct": t.user_attrs.get("stiffness_err_pct"),
+                          "hand_overs": t.user_attrs.get("hand_overs")}
                          for t in sorted(front, key=lambda t: t.values[0])],
     }
 

@@ -1,0 +1,197 @@
+"""Who drove (mpa_gym.agents.evaluation.evaluate, robustness, seeds): a supervised run whose
+fallback takes over is reported as the supervised system, with the share of steps its policy
+drove and the hand-over marked, beside the same run without its supervisor, `<run> (alone)`,
+whose figures are the policy's own.
+
+The situation is built deterministically: two tiny trained runs (a few hundred steps; their
+quality does not matter) whose config's divergence monitor is a hair trigger (the error's RMS
+over 0.5 s passing 0.05 mm), on a plant 0.1 kg off the nominal one behind a 30 ms regulator lag
+(whoever drives, the error is millimetres). The policy drives the first steps, pid the rest."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+
+import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import main
+from mpa_gym.agents.controllers.supervisor import Supervised
+from mpa_gym.agents.evaluation.episodes import metrics, run_episode
+from mpa_gym.agents.evaluation.evaluate import (
+    evaluate,
+    hand_over_lines,
+    markdown,
+    scenario_figure,
+)
+from mpa_gym.agents.evaluation.robustness import Grid, cell_metrics, no_harm, robustness
+from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
+from mpa_gym.agents.learned.policies import ALONE, load_policy, load_run
+from mpa_gym.agents.training.train import train
+
+DT, PERIOD = 0.01, 0.5
+TRIP = {"name": "trip", "duration_s": 2.0,
+        "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": PERIOD},
+        "plant": {"mass_kg": 4.1, "pressure_lag_s": 0.03}}
+HAIR_TRIGGER = {"level_mm": 0.05, "window_s": 0.5, "clip_mm": None, "arm_periods": 0}
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Two runs (seeds 0 and 1) of the default config with a hair-trigger divergence monitor,
+    named ``w-s0`` and ``w-s1`` (one group)."""
+    tmp = tmp_path_factory.mktemp("who")
+    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    hp = cfg["MPALegResidual-v0"]
+    hp.update(n_envs=4, n_timesteps=256, n_steps=64, batch_size=128, n_epochs=1)
+    hp["env_kwargs"]["task"]["episode_s"] = 0.5
+    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
+    cfg["mpa_gym"]["supervisor"]["monitors"]["divergence"] = HAIR_TRIGGER
+    path = tmp / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return [str(train(path, tmp / f"w-s{s}", s, progress=False)) for s in (0, 1)]
+
+
+def _table(md: str, title: str) -> dict[str, dict[str, str]]:
+    """A Markdown section's table: scenario → column → cell (the rule line left out)."""
+    lines = [ln for ln in md.split(f"## {title}\n")[1].split("\n## ")[0].splitlines()
+             if ln.startswith("| ")]  # the header and the rows
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    return {cells[0]: dict(zip(head[1:], cells[1:], strict=True))
+            for cells in ([c.strip() for c in ln.strip("|").split("|")] for ln in lines[1:])}
+
+
+def test_a_supervised_run_is_reported_beside_its_policy_alone(runs):
+    run = runs[0]
+    rep = evaluate([run, "ff", "pid"], [TRIP])
+    row = rep["results"]["trip"]
+    assert list(row) == ["w-s0", "w-s0 (alone)", "ff", "pid"]
+    sup, alone = row["w-s0"], row["w-s0 (alone)"]
+    # the fallback took over, and the latch holds: the policy drove exactly the steps before
+    # it (step i ends at (i + 1) dt)
+    assert 0.0 < sup["fallback_s"] < TRIP["duration_s"]
+    n = round(TRIP["duration_s"] / DT)
+    assert sup["policy_share"] == pytest.approx((sup["fallback_s"] / DT - 1) / n, abs=1e-9)
+    assert 0.0 < sup["policy_share"] < 1.0
+    # nothing took over anything else: the policy alone, the baselines
+    for m in (alone, row["ff"], row["pid"]):
+        assert m["policy_share"] == 1.0 and m["fallback_s"] is None
+    assert alone["position_rmse_mm"] != pytest.approx(sup["position_rmse_mm"], rel=1e-3)
+    # the (alone) row is the policy by itself: the model and normaliser of the run, in a single
+    # env of its own (not the report's batch), with no supervisor anywhere
+    policy, cfg = load_run(run)
+    env = gym.make(cfg.env_id, scenario=TRIP, task={k: v for k, v in
+                                                    cfg.env_kwargs["task"].items()
+                                                    if k != "episode_s"})
+    own = metrics(run_episode(env, policy, rep["seed"]), PERIOD, None)
+    for key in ("position_rmse_mm", "position_max_mm", "stiffness_rmse_pct", "return"):
+        np.testing.assert_allclose(alone[key], own[key], rtol=1e-9)
+    # ... and what `RUN_DIR:alone` evaluated on its own gives, with no supervisor in the report
+    by_itself = evaluate([run + ALONE], [TRIP])
+    assert by_itself["results"]["trip"]["w-s0 (alone)"] == alone
+    assert by_itself["supervisors"] == {}
+    assert isinstance(load_policy(run)[0], Supervised)
+    assert not isinstance(load_policy(run, supervised=False)[0], Supervised)
+
+    # Markdown: the supervised cells are marked with who drove from when, the others are not
+    md = markdown(rep)
+    cells = _table(md, "position RMSE [mm]")["trip"]
+    policy_said = f"; policy {sup['policy_share'] * 100:.0f} % of steps"
+    assert f"‡ pid from {sup['fallback_s']:.1f} s" in cells["w-s0"]
+    assert cells["w-s0"].endswith(policy_said)
+    assert all("‡" not in cells[c] for c in ("w-s0 (alone)", "ff", "pid"))
+    assert "‡: a supervisor's fallback drove part of this episode" in md
+    share = _table(md, "share of steps the learned policy drove")["trip"]
+    assert float(share["w-s0"]) == pytest.approx(sup["policy_share"], abs=5e-4)
+    assert float(share["ff"]) == 1.0
+    [line] = hand_over_lines(rep)
+    assert line.startswith(f"w-s0 on trip: pid from {sup['fallback_s']:.1f} s")
+    assert line.endswith(policy_said)
+
+    # the plot: an error panel in mm, and the hand-over drawn where it happened
+    fig = scenario_figure("trip", rep["traces"]["trip"], rep["stages"])
+    err = fig.axes[1]
+    assert err.get_ylabel() == "X − X̂ [mm]"
+    lines = {ln.get_label(): ln for ln in err.get_lines()}
+    tr = rep["traces"]["trip"]["ff"]
+    np.testing.assert_allclose(lines["ff"].get_ydata(), (tr.x - tr.x_ref) * 1e3)
+    handed = [ln for lab, ln in lines.items() if "from" in lab]
+    assert [ln.get_label() for ln in handed] == [f"w-s0: pid from {sup['fallback_s']:.1f} s"]
+    assert list(handed[0].get_xdata()) == [sup["fallback_s"]] * 2
+
+    # the no-harm audit checks both
+    assert set(rep["no_harm"]) == {"w-s0", "w-s0 (alone)"}
+
+
+def test_groups_and_the_sweep_hold_the_supervised_system_and_the_policy_alone(runs):
+    rep = evaluate([*runs, "ff"], [TRIP])
+    g = rep["groups"]
+    assert set(g) == {"w", "w (alone)"}
+    assert g["w (alone)"]["runs"] == ["w-s0 (alone)", "w-s1 (alone)"]
+    row = rep["results"]["trip"]
+    sup, alone = g["w"]["results"]["trip"], g["w (alone)"]["results"]["trip"]
+    assert sup["fallback_runs"] == 2 and alone["fallback_runs"] == 0
+    assert alone["policy_share"] == 1.0 and sup["policy_share"] < 1.0
+    # two runs: the IQM is their mean, each group over its own rows
+    for grp, labels in ((alone, ["w-s0 (alone)", "w-s1 (alone)"]), (sup, ["w-s0", "w-s1"])):
+        assert grp["position_rmse_mm"] == pytest.approx(
+            np.mean([row[lab]["position_rmse_mm"] for lab in labels]), rel=1e-12)
+    cells = _table(markdown(rep), "position RMSE [mm]")["trip"]
+    assert cells["w (IQM [95 % CI])"].endswith("‡ hand-over in 2 of 2 runs")
+    assert "‡" not in cells["w (alone) (IQM [95 % CI])"]
+
+    # the sweep: every cell says who drove; the policy alone is swept beside the supervised run
+    grid = Grid("load", "extra_mass_kg", (0.5, 1.0), "pressure_lag_s", (0.03,))
+    rob = robustness([runs[0], "ff"], scenario=TRIP, grids=(grid,), levels={}, kicks={})
+    ctrls = rob["grids"]["load"]["controllers"]
+    assert list(ctrls) == ["w-s0", "w-s0 (alone)", "ff"]
+    for c, cells_of in ctrls.items():
+        for m in (m for r in cells_of for m in r):
+            if c == "w-s0":
+                assert 0.0 < m["policy_share"] < 1.0 and m["fallback_s"] is not None
+            else:
+                assert m["policy_share"] == 1.0 and m["fallback_s"] is None
+    m = ctrls["w-s0"][0][0]
+    said = f"‡{m['fallback_s']:.1f} s" + ("" if m["last_resort_s"] is None else
+                                          f" §{m['last_resort_s']:.1f} s")
+    assert f"{said} (policy {m['policy_share'] * 100:.0f} %)" in \
+        "\n".join(robustness_markdown(rob))
+
+
+def test_no_harm_audits_the_sweep_of_both(runs):
+    grid = Grid("load", "extra_mass_kg", (0.5, 1.0), "pressure_lag_s", (0.03,))
+    rob = robustness([runs[0], "ff", "pid"], scenario=TRIP, grids=(grid,), levels={},
+                     kicks={})
+    audit = no_harm({}, rob, ["w-s0", "w-s0 (alone)"])
+    assert set(audit) == {"w-s0", "w-s0 (alone)"}
+    assert all(a["checked"] == 2 for a in audit.values())
+
+
+def test_a_cell_counts_the_share_over_its_own_steps():
+    # A leg that terminated after 40 of 100 steps, its fallback driving from step 30: the policy
+    # drove 30 of its 40 steps (the padding after its end is no one's).
+    t = DT * np.arange(1, 101)
+    fb = np.zeros((100, 1), dtype=np.int8)
+    fb[30:40] = 1
+    run = {"t": t, "x": np.full((100, 1), np.nan), "x_ref": np.zeros((100, 1)),
+           "terminated": np.array([True]), "fallback": fb, "steps": np.array([40])}
+    m = cell_metrics(run, 3.0, DT)[0]
+    assert m["policy_share"] == pytest.approx(0.75) and m["fallback_s"] == pytest.approx(0.31)
+
+
+def test_the_evaluate_summary_prints_the_hand_overs(runs, tmp_path, capsys):
+    scen = tmp_path / "trip.yaml"
+    scen.write_text(yaml.safe_dump(TRIP))
+    assert main(["evaluate", "--policy", runs[0], "pid", "--scenarios", str(scen),
+                 "--no-robustness", "--out", str(tmp_path / "rep")]) == 0
+    text = capsys.readouterr().out
+    row = json.loads((tmp_path / "rep" / "report.json").read_text())["results"]["trip"]
+    fb = row["w-s0"]["fallback_s"]
+    assert f"w-s0 on trip: pid from {fb:.1f} s; policy " in text
+    assert "w-s0 (alone)" in text.splitlines()[1]  # a column of the table
+    # the table's supervised cell is marked, the policy alone's is not
+    table = next(ln for ln in text.splitlines() if ln.split()[:1] == ["trip"])
+    assert table.count("‡") == 1
