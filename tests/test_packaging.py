@@ -10,6 +10,8 @@ environments, which takes minutes.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -187,3 +189,13 @@ def test_each_library_layer_imports_only_from_the_layers_above_it():
             if mine is not None and theirs is not None and theirs > mine:
                 bad.append(f"{name}:{line} (layer {mine}) imports {imp} (layer {theirs})")
     assert not bad
+
+
+def test_evaluating_and_loading_do_not_import_torch_until_a_model_is_read():
+    # the report's modules are what the spawned workers and every `mpa-gym evaluate` import
+    # first; torch (about 1 s to import) comes only with a learned model
+    code = ("import sys, mpa_gym.agents.evaluation.evaluate, mpa_gym.agents.learned.policies, "
+            "mpa_gym.agents.learned.runs; print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, cwd=ROOT)
+    assert out.stdout.strip() == "False"

@@ -15,12 +15,13 @@ import io
 import json
 import pickle
 import zipfile
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
@@ -66,10 +67,16 @@ def legacy_objects(path: Path) -> dict[str, Any]:
     return out
 
 
-def save_state(model: Any, model_path: Path, norm_path: Path | None) -> None:
-    """The model (anchored at its normaliser's zero,
-    ``mpa_gym.agents.learned.anchor.rest_for_save``) and its normaliser, each written atomically."""
-    with rest_for_save(model):
+# how a model is prepared while it is written: training passes
+# ``mpa_gym.agents.learned.anchor.rest_for_save`` (the policy anchored at its normaliser's zero as
+# saved); it is a parameter so that reading a run folder never imports torch
+Prepare = Callable[[Any], AbstractContextManager[Any]]
+
+
+def save_state(model: Any, model_path: Path, norm_path: Path | None, *, prepare: Prepare
+               ) -> None:
+    """The model (inside ``prepare(model)``) and its normaliser, each written atomically."""
+    with prepare(model):
         atomic_save(model_path, model.save)
     norm = model.get_vec_normalize_env()
     if norm is not None and norm_path is not None:
@@ -83,13 +90,13 @@ def checkpoint_paths(run: Path, steps: int) -> dict[str, Path]:
             "marker": d / f"ppo_{steps}_steps.json"}
 
 
-def write_checkpoint(model: Any, run: Path) -> Path:
+def write_checkpoint(model: Any, run: Path, *, prepare: Prepare) -> Path:
     """A complete checkpoint at the model's step count: model, normaliser, then the marker
     (written last, so a checkpoint without it was torn by a kill and is ignored)."""
     steps = int(model.num_timesteps)
     p = checkpoint_paths(run, steps)
     has_norm = model.get_vec_normalize_env() is not None
-    save_state(model, p["model"], p["normalizer"])
+    save_state(model, p["model"], p["normalizer"], prepare=prepare)
     files = {p["model"].name: p["model"].stat().st_size}
     if has_norm:
         files[p["normalizer"].name] = p["normalizer"].stat().st_size
@@ -97,10 +104,10 @@ def write_checkpoint(model: Any, run: Path) -> Path:
     return p["model"]
 
 
-def save_final(model: Any, run: Path) -> None:
+def save_final(model: Any, run: Path, *, prepare: Prepare) -> None:
     """A checkpoint at the current step count, then ``model.zip`` + ``vecnormalize.pkl``."""
-    write_checkpoint(model, run)
-    save_state(model, run / "model.zip", run / "vecnormalize.pkl")
+    write_checkpoint(model, run, prepare=prepare)
+    save_state(model, run / "model.zip", run / "vecnormalize.pkl", prepare=prepare)
 
 
 def zip_timesteps(path: Path) -> int:

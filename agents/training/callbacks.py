@@ -231,7 +231,8 @@ class HeldOutEval(EvalCallback):
             live = None
             if model_is_finite(self.model):
                 def live() -> None:
-                    save_state(self.model, folder / "best_model.zip", folder / "vecnormalize.pkl")
+                    save_state(self.model, folder / "best_model.zip", folder / "vecnormalize.pkl",
+                               prepare=rest_for_save)
             self._record(int(self.num_timesteps),
                          held_out_metrics(self.cfg, self.scenarios, self.model, norm), live)
             return
@@ -327,7 +328,7 @@ class CompleteCheckpoints(BaseCallback):
 
     def _on_step(self) -> bool:
         if self.n_calls % self.every == 0:
-            write_checkpoint(self.model, self.run)
+            write_checkpoint(self.model, self.run, prepare=rest_for_save)
         return True
 
 

@@ -42,7 +42,7 @@ from stable_baselines3.common.callbacks import (
 )
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor, VecNormalize
 
-from mpa_gym.agents.learned.anchor import RestAnchoredPolicy, RestObservation
+from mpa_gym.agents.learned.anchor import RestAnchoredPolicy, RestObservation, rest_for_save
 from mpa_gym.agents.learned.config import (
     DEFAULT_CONFIG,
     ConfigError,
@@ -332,7 +332,7 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
                                       "max_grad_norm, ent_coef and the rewards)") from None
             finally:
                 if model_is_finite(model):  # Ctrl-C, SIGTERM or an error: keep what was learned
-                    save_final(model, run)
+                    save_final(model, run, prepare=rest_for_save)
     except KeyboardInterrupt:  # a second Ctrl-C: nobody waits for the evaluation under way
         held_out.close(wait=False)
         raise
