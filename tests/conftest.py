@@ -6,12 +6,15 @@ import contextlib
 import os
 import signal
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
+from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
 
 # Tests that run a device loop in another process in real time (the emulator over a link). The
@@ -97,3 +100,23 @@ def serving(kind: str = "udp", scenario: Any = "nominal", **kw: Any
         emu.stop()
         thread.join(timeout=2.0)
         link.close()
+
+
+def tiny_config(folder: Path, edit: Callable[[dict[str, Any]], None] | None = None,
+                **ppo: Any) -> Path:
+    """The default training config cut down to a tiny run, written to ``folder/cfg.yaml``:
+    half-second episodes, no held-out evaluation or checkpoint during it, ``ppo`` (n_envs,
+    n_timesteps, n_steps, batch_size, n_epochs) over the defaults below, then ``edit`` applied to
+    the whole config. The weights and statistics it trains are real; their quality does not
+    matter to the tests that use it."""
+    cfg = yaml.safe_load(DEFAULT_TRAIN_CONFIG.read_text())
+    hp = cfg["MPALegResidual-v0"]
+    hp.update({"n_envs": 4, "n_timesteps": 512, "n_steps": 64, "batch_size": 128,
+               "n_epochs": 2, **ppo})
+    hp["env_kwargs"]["task"]["episode_s"] = 0.5
+    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
+    if edit is not None:
+        edit(cfg)
+    path = Path(folder) / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path

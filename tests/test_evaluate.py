@@ -16,6 +16,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from conftest import tiny_config
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import main
@@ -44,14 +45,11 @@ def runs(tmp_path_factory):
     """Two runs (seeds 0 and 1) of the default config with a hair-trigger divergence monitor,
     named ``w-s0`` and ``w-s1`` (one group)."""
     tmp = tmp_path_factory.mktemp("who")
-    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    hp = cfg["MPALegResidual-v0"]
-    hp.update(n_envs=4, n_timesteps=256, n_steps=64, batch_size=128, n_epochs=1)
-    hp["env_kwargs"]["task"]["episode_s"] = 0.5
-    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
-    cfg["mpa_gym"]["supervisor"]["monitors"]["divergence"] = HAIR_TRIGGER
-    path = tmp / "cfg.yaml"
-    path.write_text(yaml.safe_dump(cfg))
+
+    def hair_trigger(cfg):
+        cfg["mpa_gym"]["supervisor"]["monitors"]["divergence"] = HAIR_TRIGGER
+
+    path = tiny_config(tmp, hair_trigger, n_timesteps=256, n_epochs=1)
     return [str(train(path, tmp / f"w-s{s}", s, progress=False)) for s in (0, 1)]
 
 

@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
+from conftest import tiny_config
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import mpa_gym  # noqa: F401
@@ -35,14 +36,7 @@ def tiny_run(tmp_path_factory):
     """A run of the default config, trained for a few hundred steps (the weights and the
     normaliser's statistics are the trained ones; their quality does not matter here)."""
     tmp = tmp_path_factory.mktemp("inference")
-    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    hp = cfg["MPALegResidual-v0"]
-    hp.update(n_envs=4, n_timesteps=512, n_steps=64, batch_size=128, n_epochs=2)
-    hp["env_kwargs"]["task"]["episode_s"] = 0.5
-    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
-    path = tmp / "cfg.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return train(path, tmp / "run", progress=False)
+    return train(tiny_config(tmp), tmp / "run", progress=False)
 
 
 def compare(sb3, deployed, env, n=250, restart_at=120, seed=0):

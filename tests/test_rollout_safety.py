@@ -13,8 +13,7 @@ import threading
 import time
 
 import pytest
-import yaml
-from conftest import REALTIME, default_sigint, serving
+from conftest import REALTIME, default_sigint, serving, tiny_config
 
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.learned.policies import load_policy
@@ -121,13 +120,12 @@ def test_episodes_0_is_refused_before_the_rig_is_pressurised(tmp_path, capsys):
 def test_a_run_at_another_control_rate_is_refused_before_the_rig_is_touched(tmp_path, capsys):
     """A PPO run trained at dt_s = 0.01 s sums its tracking-error integrals per 10 ms period and
     learned its actions for it: rolled out at 500 Hz it would act silently wrong."""
-    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    hp = cfg["MPALegResidual-v0"]
-    hp.update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=64, n_epochs=1)
-    hp["env_kwargs"]["task"].update(episode_s=0.5, dt_s=0.01)
-    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000)
-    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    run = train(tmp_path / "cfg.yaml", tmp_path / "run", progress=False)
+    def at_100_hz(cfg):
+        cfg["MPALegResidual-v0"]["env_kwargs"]["task"]["dt_s"] = 0.01
+
+    path = tiny_config(tmp_path, at_100_hz, n_envs=2, n_timesteps=64, n_steps=32,
+                       batch_size=64, n_epochs=1)
+    run = train(path, tmp_path / "run", progress=False)
     with serving() as (url, emu):
         code = main(["rollout", "--policy", str(run), "--device", url, "--control-hz", "500",
                      "--log", str(tmp_path / "r.jsonl")])

@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import yaml
-from conftest import REALTIME, serving
+from conftest import REALTIME, serving, tiny_config
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import show_rollout
@@ -510,15 +510,13 @@ def test_a_supervised_run_on_the_rig_logs_when_its_fallback_takes_over(tmp_path)
     # ~0.4 mm, over the trigger). The deployed policy comes supervised; the log has one
     # "fallback" event naming the supervisor and, one grace period later, one "last_resort"
     # event; each step's stage says who drove it, and the episode's metrics say when.
-    cfg = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    hp = cfg["MPALegResidual-v0"]
-    hp.update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=64, n_epochs=1)
-    hp["env_kwargs"]["task"]["episode_s"] = 0.5
-    cfg["mpa_gym"].update(eval_scenarios=[], eval_freq=10_000, checkpoint_freq=10_000,
-                          supervisor={"fallback": "pid", "error_mm": 0.05,
-                                      "last_resort": "afc"})
-    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
-    run = train(tmp_path / "cfg.yaml", tmp_path / "run", progress=False)
+    def hair_trigger(cfg):
+        cfg["mpa_gym"]["supervisor"] = {"fallback": "pid", "error_mm": 0.05,
+                                        "last_resort": "afc"}
+
+    path = tiny_config(tmp_path, hair_trigger, n_envs=2, n_timesteps=64, n_steps=32,
+                       batch_size=64, n_epochs=1)
+    run = train(path, tmp_path / "run", progress=False)
     rig = {"name": "slow_rig", "duration_s": 4.5, "plant": {
         "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03, "extra_mass_kg": 0.5}}
     log = tmp_path / "r.jsonl"
