@@ -451,10 +451,11 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"supervisor\.monitors\.limit_cycle\.arm_periods=1\.5 must be a whole number of "
      r"reference periods in \[0, 100\]"),
     ({"monitors": {"wobble": {}}},
-     r"supervisor\.monitors: unknown monitor 'wobble'; allowed \['divergence', "
-     r"'limit_cycle', 'persistent'\]"),
+     r"supervisor\.monitors: unknown key\(s\) \['wobble'\]; allowed keys are "
+     r"\['divergence', 'limit_cycle', 'persistent'\]"),
     ({"monitors": {"divergence": {"level": 3}}},
-     r"supervisor\.monitors\.divergence=\{'level': 3\}: allowed keys are \['level_mm'"),
+     r"supervisor\.monitors\.divergence: unknown key\(s\) \['level'\]; allowed keys are "
+     r"\['arm_periods', 'clip_mm', 'level_mm', 'window_s'\]"),
     ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
      r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
     ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},

@@ -50,6 +50,7 @@ policy drove, so a figure never hides which controller earned it.
 from __future__ import annotations
 
 import dataclasses
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Any, ClassVar, NamedTuple
 
@@ -91,7 +92,7 @@ def _check_periods(key: str, value: Any) -> None:
 
 
 @dataclass(frozen=True)
-class Monitor:
+class Monitor(ABC):
     """A running RMS of one signal of the tracking error and the level at which it trips
     (module docstring). The subclasses say which signal; their defaults are the default
     config's."""
@@ -109,9 +110,9 @@ class Monitor:
                        tuple(f"supervisor.monitors.{self.name}.{f}" for f in
                              ("level_mm", "window_s", "clip_mm", "arm_periods")))
 
+    @abstractmethod
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
-        """s_t per row from e_t and e_{t−T} [m]."""
-        raise NotImplementedError
+        """s_t per row from e_t and e_{t−T} [m] (each kind of monitor says which)."""
 
     def update(self, z: np.ndarray, e: np.ndarray, past: np.ndarray, armed: np.ndarray,
                dt: float) -> np.ndarray:
@@ -348,15 +349,15 @@ def _monitors(value: Any) -> tuple[Monitor, ...]:
     if not isinstance(value, dict):
         raise ValueError(f"supervisor.monitors={value!r} must be a mapping of {list(MONITORS)} "
                          "to their fields")
+    check_keys("supervisor.monitors", value, MONITORS)
     out = {m.name: m for m in DEFAULT_MONITORS}
     for name, fields in value.items():
-        if name not in MONITORS:
-            raise ValueError(f"supervisor.monitors: unknown monitor {name!r}; allowed "
-                             f"{list(MONITORS)}")
         keys = [f.name for f in dataclasses.fields(MONITORS[name])]
         fields = {} if fields is None else fields
-        if not isinstance(fields, dict) or set(fields) - set(keys):
-            raise ValueError(f"supervisor.monitors.{name}={fields!r}: allowed keys are {keys}")
+        if not isinstance(fields, dict):
+            raise ValueError(f"supervisor.monitors.{name}={fields!r} must be a mapping with "
+                             f"keys among {keys}")
+        check_keys(f"supervisor.monitors.{name}", fields, keys)
         out[name] = MONITORS[name](**fields)
     return tuple(out.values())
 
@@ -371,9 +372,10 @@ def _stages(value: Any) -> tuple[Stage, ...]:
                          f"{keys}")
     out = []
     for i, stage in enumerate(value):
-        if not isinstance(stage, dict) or set(stage) - set(keys) or "controller" not in stage:
+        if not isinstance(stage, dict) or "controller" not in stage:
             raise ValueError(f"supervisor.stages[{i}]={stage!r}: a mapping with a controller "
                              f"and keys among {keys}")
+        check_keys(f"supervisor.stages[{i}]", stage, keys)
         monitors = stage.get("monitors") or []
         if not isinstance(monitors, list):
             raise ValueError(f"supervisor.stages[{i}].monitors={monitors!r} must be a list of "

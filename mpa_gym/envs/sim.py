@@ -205,7 +205,6 @@ class SimEngine:
         self.cfg = cfg
         self.spec = obs_spec(residual)  # the observation layout (task.contract)
         self.obs_dim = self.spec.shape[0]
-        self.w_k = cfg.stiffness_weight(residual)
         self.state = np.zeros((n, len(STATE)))
         self.prev_cmd = np.zeros((n, 2))
         self.idx = np.zeros(n, dtype=np.int64)  # row of the stacked tables
