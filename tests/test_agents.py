@@ -151,7 +151,7 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
         via, state = policy.predict(raw.last, state, start)
         start = np.array([False])
         obs, *_ = env.step(direct[0])
-        np.testing.assert_array_equal(via, env.env.state["prev"][0])  # what the env was given
+        np.testing.assert_array_equal(via, env.env.state["prev"][0][0])  # what the env was given
     # the model saw the tracking-error features alone (the env's X, X̂, pressures… left out):
     # errors, integrals, the resonant pair and the previous action
     f = policy.features

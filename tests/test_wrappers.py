@@ -88,15 +88,18 @@ def test_remodulated_integrals_are_the_resonant_output_and_its_quadrature():
 
 def test_an_episode_starts_from_the_zero_record():
     # an episode's first observation restarts every field of the record (integrals, previous
-    # action, each of the stiffness estimator's) and is not integrated; the features then
-    # show zero integrals and previous action
+    # action, each of the stiffness estimator's) but the rig's delays, and is not integrated;
+    # the features then show zero integrals and previous action
     front = Frontend(FeatureSpec(harmonics=2, previous_action=True), None, 0.01)
     state = new_state(3)
     for name in STATE.names:  # every field away from its start
         state[name] = 1
     feats = front.observe(_error_obs(1e-3, np.array([0.1, 0.2, 0.3])), state,
                           np.array([True, False, True]))
-    assert state[[0, 2]].tobytes() == new_state(2).tobytes()
+    for name in STATE.names:
+        if name != "delay_s":
+            np.testing.assert_array_equal(state[name][[0, 2]], new_state(2)[name])
+    assert np.all(state["delay_s"] == 1.0)  # the rig's, kept
     assert np.all(feats[[0, 2], 9 + 2:] == 0.0) and np.all(feats[1, 9 + 2:] != 0.0)
     assert np.all(feats[:, 9] == np.float32(1e-3))  # the error itself is there
 
@@ -330,3 +333,67 @@ def test_stiffness_estimator_setting_is_checked():
     assert adapt_time_constant(None) is None and adapt_time_constant(3) == 3.0
     with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
         adapt_time_constant(3.0, force_stiffness=False)
+
+
+def test_action_history_holds_the_last_actions_applied_newest_first():
+    # the H actions still in flight, as the env applied them (clipped), newest first, zeros
+    # before the episode's first action; single and vector agree across the autoreset
+    H = 5
+    kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
+    feats = {"harmonics": 1, "action_history": H, "errors_only": True}
+    single = TrackingErrorObservation(gym.make("MPALegResidual-v0", **kw), **feats)
+    vec = TrackingErrorVectorObservation(gym.make_vec(
+        "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw), **feats)
+    at = 2 + 3  # after e, ė and I_0, I_s1, I_c1
+    so, _ = single.reset(seed=2)
+    vec.reset(seed=2)
+    assert so.shape == (at + 2 * H,) and single.observation_space.contains(so)
+    rng = np.random.default_rng(5)
+    given: list[np.ndarray] = []
+    for _ in range(40):  # crosses the 30-step episode end
+        a = rng.uniform(-1.2, 1.2, (2, 2)).astype(np.float32)
+        so, _, te, tr, _ = single.step(a[0])
+        vo, *_ = vec.step(a)
+        given.insert(0, np.clip(a[0], -1, 1))
+        want = np.zeros((H, 2))
+        k = min(H, len(given))
+        want[:k] = given[:k]
+        if te or tr:
+            so, _ = single.reset()
+            given, want = [], np.zeros((H, 2))
+        np.testing.assert_array_equal(so[at:].reshape(H, 2), want.astype(np.float32))
+        np.testing.assert_array_equal(so, vo[0])
+
+
+def test_previous_action_is_a_history_of_one_and_both_cannot_be_given():
+    assert FeatureSpec(previous_action=True).n_actions == 1
+    assert FeatureSpec(action_history=4).n_actions == 4
+    with pytest.raises(ValueError, match="previous_action=True and action_history=3"):
+        FeatureSpec(previous_action=True, action_history=3)
+    with pytest.raises(ValueError, match=r"action_history=17 must be a whole number in \[0, 16\]"):
+        FeatureSpec(action_history=17)
+
+
+def test_delay_observation_carries_each_episodes_regulator_delays():
+    # training: each row's features end in its own plant's (dead time, lag), a new episode's
+    # after an autoreset; values drawn by the env's randomisation, never by the wrapper
+    sc = {"name": "delays", "duration_s": 0.3,
+          "randomize": {"pressure_dead_time_s": [0.0, 0.05], "pressure_lag_s": [0.0, 0.06]}}
+    feats = {"delay_observation": True, "errors_only": True}
+    vec = TrackingErrorVectorObservation(gym.make_vec(
+        "MPALegResidual-v0", num_envs=3, vectorization_mode="vector_entry_point", scenario=sc,
+        task={"episode_s": 0.3}), **feats)
+    obs, _ = vec.reset(seed=7)
+    engine = vec.env.unwrapped.engine
+
+    def truth() -> np.ndarray:
+        return np.array([(p.pressure_dead_time_s, p.pressure_lag_s) for p in engine.plants],
+                        dtype=np.float32)
+
+    first = truth()
+    assert np.all(first > 0.0) and len(np.unique(first[:, 0])) == 3  # drawn, per row
+    np.testing.assert_array_equal(obs[:, -2:], first)
+    for _ in range(31):  # crosses the 30-step episode end
+        obs, *_ = vec.step(np.zeros((3, 2), dtype=np.float32))
+    assert not np.array_equal(truth(), first)  # new episodes, new plants
+    np.testing.assert_array_equal(obs[:, -2:], truth())

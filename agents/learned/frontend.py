@@ -27,6 +27,11 @@ stiffness error the policy can correct. ``mask_pressures`` zeroes the measured p
 layout stays): they echo the policy's own last command, and a policy that learned to overdrive
 lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
 action the env was last given instead, the other way to tell the command from the lag;
+``action_history`` H appends the last H actions the env was given, newest first: with a
+regulator dead time and lag, the commands of the last (dead time + lag) / dt steps are still
+on their way to the muscles, and a delayed loop is an undelayed one whose state holds the
+actions in flight (Katsikopoulos & Engelbrecht 2003; rtgym sizes the buffer to the worst total
+delay), so H is sized to the worst dead time + lag trained on (``previous_action`` is H = 1);
 ``fine_error_m`` appends the error clipped to ±δ, which VecNormalize then scales to the sub-
 millimetre band (the plain error's running std is set by millimetre transients). All are
 what a controller computes from its measurements and its own commands, never a plant parameter.
@@ -100,6 +105,8 @@ from mpa_gym.task.contract import OBS_XREF as OXR
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 MAX_HARMONICS = 5
+MAX_DELAY_S = 1.0  # [s] the bound of the observed dead time and lag
+MAX_ACTION_HISTORY = 16  # actions a front-end may keep: 160 ms at 100 Hz, beyond any trained delay
 
 
 @dataclass(frozen=True)
@@ -113,6 +120,11 @@ class FeatureSpec:
     fine_error_m: float | None = None  # [m] also append clip(X̂ − X, ±this)
     errors_only: bool = False  # drop the env observation: the features alone
     remodulate: bool = False  # append each harmonic pair's resonant output and its quadrature
+    # append the last H actions the env was given, newest first (previous_action: H = 1)
+    action_history: int = 0
+    # append the rig's regulator dead time and lag [s] (the plant's in training; identified
+    # or nominal when deployed: Frontend.known_delay_s)
+    delay_observation: bool = False
 
     def __post_init__(self) -> None:
         lim = self.limit_m_s
@@ -121,9 +133,17 @@ class FeatureSpec:
         h = self.harmonics
         if isinstance(h, bool) or not isinstance(h, int) or not 0 <= h <= MAX_HARMONICS:
             raise ValueError(f"harmonics={h!r} must be a whole number in [0, {MAX_HARMONICS}]")
-        for name in ("previous_action", "mask_pressures", "errors_only", "remodulate"):
+        for name in ("previous_action", "mask_pressures", "errors_only", "remodulate",
+                     "delay_observation"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}={getattr(self, name)!r} must be true or false")
+        n = self.action_history
+        if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= MAX_ACTION_HISTORY:
+            raise ValueError(f"action_history={n!r} must be a whole number in "
+                             f"[0, {MAX_ACTION_HISTORY}]")
+        if self.previous_action and n:
+            raise ValueError(f"previous_action=True and action_history={n}: previous_action is "
+                             "action_history: 1; give one of them")
         f = self.fine_error_m
         if f is not None and (isinstance(f, bool) or not isinstance(f, int | float) or
                               not 0 < f <= 0.1):
@@ -137,14 +157,22 @@ class FeatureSpec:
         """Number of integral features: I_0 and one (sin, cos) pair per harmonic."""
         return 1 + 2 * self.harmonics
 
+    @property
+    def n_actions(self) -> int:
+        """Number of past actions in the features (``previous_action`` is one)."""
+        return self.action_history or int(self.previous_action)
+
     def space(self, space: spaces.Box) -> spaces.Box:
         """The observation space with the features appended, in ``observe_row``'s order."""
         m, lim = self.n_integrals, self.limit_m_s
-        lo = [-1.0, -20.0] + [-lim] * m + [-1.0] * (2 * self.previous_action)
-        hi = [1.0, 20.0] + [lim] * m + [1.0] * (2 * self.previous_action)
+        lo = [-1.0, -20.0] + [-lim] * m + [-1.0] * (2 * self.n_actions)
+        hi = [1.0, 20.0] + [lim] * m + [1.0] * (2 * self.n_actions)
         if self.fine_error_m is not None:
             lo.append(-self.fine_error_m)
             hi.append(self.fine_error_m)
+        if self.delay_observation:
+            lo += [0.0, 0.0]
+            hi += [MAX_DELAY_S, MAX_DELAY_S]
         if self.remodulate:
             bound = np.sqrt(2) * lim * (1 + 1e-6)  # |R|, |Q| ≤ |(I_s, I_c)|; float32 rounding
             lo += [-bound] * (2 * self.harmonics)
@@ -206,7 +234,8 @@ class ActionSpec:
 STATE = np.dtype([
     ("integ", np.float64, (1 + 2 * MAX_HARMONICS,)),  # [m s] I_0, I_s1, I_c1, I_s2, …: the
     #                                                   first FeatureSpec.n_integrals are used
-    ("prev", np.float64, (2,)),  # the action the env was last given, clipped to [−1, 1]
+    # the actions the env was last given, newest first, clipped to [−1, 1]
+    ("prev", np.float64, (MAX_ACTION_HISTORY, 2)),
     # the stiffness estimator (module docstring), all low-passed with time constant τ:
     ("est_x_ref_m", np.float64),  # [m] mean of X̂
     ("est_force_N", np.float64),  # [N] mean of the applied ΔF
@@ -215,6 +244,10 @@ STATE = np.dtype([
     ("est_slope_N_per_m", np.float64),  # [N/m] c / (v + v₀), clipped to ±stiffness_rel k̂
     ("est_applied_N", np.float64),  # [N] the ΔF applied last step, paired with the next X̂
     ("est_started", np.bool_),  # the estimator has had its first observation
+    # [s] the rig's regulator dead time and lag, for FeatureSpec.delay_observation: the
+    # rig's, not the episode's, so an episode's start keeps them (Frontend.new_state fills
+    # them with known_delay_s; the training wrappers with each episode's plant)
+    ("delay_s", np.float64, (2,)),
 ])
 
 # A front-end's settings as the kernels read them, by name: the fields of FeatureSpec and
@@ -223,10 +256,11 @@ SETTINGS = np.dtype([
     ("features", np.bool_),  # append FeatureSpec's features; else the observation as it is
     ("limit_m_s", np.float64),
     ("harmonics", np.int64),
-    ("previous_action", np.bool_),
+    ("n_actions", np.int64),  # FeatureSpec.n_actions
     ("mask_pressures", np.bool_),
     ("fine_error", np.bool_),  # fine_error_m is not None
     ("fine_error_m", np.float64),
+    ("delay_observation", np.bool_),
     ("errors_only", np.bool_),
     ("remodulate", np.bool_),
     ("force_stiffness", np.bool_),  # map (a_F, a_k) by ActionSpec; else the action as it is
@@ -248,8 +282,8 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
     r["dt_s"] = check_range("dt_s", dt_s, 0.0, low_open=True, unit="s")
     if features is not None:
         r["features"] = True
-        for name in ("limit_m_s", "harmonics", "previous_action", "mask_pressures",
-                     "errors_only", "remodulate"):
+        for name in ("limit_m_s", "harmonics", "n_actions", "mask_pressures",
+                     "errors_only", "remodulate", "delay_observation"):
             r[name] = getattr(features, name)
         r["fine_error"] = features.fine_error_m is not None
         r["fine_error_m"] = features.fine_error_m or 0.0
@@ -271,8 +305,9 @@ def restart_row(st):
     """The zero record: an episode's start (every field of ``STATE``)."""
     for i in range(st.integ.shape[0]):
         st.integ[i] = 0.0
-    st.prev[0] = 0.0
-    st.prev[1] = 0.0
+    for i in range(st.prev.shape[0]):
+        st.prev[i, 0] = 0.0
+        st.prev[i, 1] = 0.0
     st.est_x_ref_m = 0.0
     st.est_force_N = 0.0
     st.est_cov_N_m = 0.0
@@ -290,7 +325,8 @@ def observe_row(raw, st, fresh, cfg, feat):
     is the observation itself.
 
     Features: [observation (pressures zeroed if mask_pressures; left out if errors_only),
-    X̂ − X, V̂ − V, I_0, (I_s1, I_c1), …, (a_prev), (fine error), (R_1…R_h, Q_1…Q_h if
+    X̂ − X, V̂ − V, I_0, (I_s1, I_c1), …, (a_{t−1}, …, a_{t−H}), (fine error), (dead time,
+    lag), (R_1…R_h, Q_1…Q_h if
     remodulate)], h = 1 … harmonics; the harmonic basis sin hφ, cos hφ by the complex
     recurrence z ← z (cos φ + i sin φ) from the observed phase."""
     if fresh:
@@ -322,13 +358,17 @@ def observe_row(raw, st, fresh, cfg, feat):
     for i in range(m):
         feat[n] = st.integ[i]
         n += 1
-    if cfg.previous_action:
-        feat[n] = st.prev[0]
-        feat[n + 1] = st.prev[1]
+    for i in range(cfg.n_actions):
+        feat[n] = st.prev[i, 0]
+        feat[n + 1] = st.prev[i, 1]
         n += 2
     if cfg.fine_error:
         feat[n] = min(max(e, -cfg.fine_error_m), cfg.fine_error_m)
         n += 1
+    if cfg.delay_observation:
+        feat[n] = st.delay_s[0]
+        feat[n + 1] = st.delay_s[1]
+        n += 2
     if cfg.remodulate:  # R_h = I_sh sin hφ + I_ch cos hφ, Q_h = I_sh cos hφ − I_ch sin hφ
         zr, zi = 1.0, 0.0
         for h in range(h_max):
@@ -394,7 +434,8 @@ def act_row(a, raw, st, cfg, c, out):
     """The env's action for the policy's action ``a`` at observation ``raw`` (the env's own)
     into ``out``: with ``cfg.force_stiffness``, a = (a_F, a_k), a_k replaced by the stiffness
     estimator's if ``cfg.adapt``, mapped by ``force_stiffness_row``; else ``a`` itself. The
-    record keeps it (clipped, as the env applies it) as the next features' a_prev."""
+    record keeps it (clipped, as the env applies it) as the next features' a_{t−1}, the older
+    ones moving down the history."""
     if cfg.force_stiffness:
         x_ref = np.float64(raw[OXR])
         k_ref = np.float64(raw[OK]) * OBS_KREF_SCALE
@@ -405,8 +446,11 @@ def act_row(a, raw, st, cfg, c, out):
     else:
         out[0] = a[0]
         out[1] = a[1]
-    st.prev[0] = min(max(out[0], -1.0), 1.0)
-    st.prev[1] = min(max(out[1], -1.0), 1.0)
+    for i in range(st.prev.shape[0] - 1, 0, -1):
+        st.prev[i, 0] = st.prev[i - 1, 0]
+        st.prev[i, 1] = st.prev[i - 1, 1]
+    st.prev[0, 0] = min(max(out[0], -1.0), 1.0)
+    st.prev[0, 1] = min(max(out[1], -1.0), 1.0)
 
 
 @numba.njit(**JIT)
@@ -448,6 +492,15 @@ class Frontend:
         self.features, self.action, self.dt = features, action, float(dt_s)
         self.settings = pack_settings(features, action, dt_s, residual_scale_bar)
         self.consts = constants(params)
+        # [s] (dead time, lag) of the rig it runs on, for the delay observation: identified
+        # (``mpa-gym identify``) or the scenario's
+        self.known_delay_s = (0.0, 0.0)
+
+    def new_state(self, n: int) -> np.ndarray:
+        """``n`` records at an episode's start on the rig of ``known_delay_s``."""
+        st = new_state(n)
+        st["delay_s"] = self.known_delay_s
+        return st
 
     @classmethod
     def of(cls, features: FeatureSpec | None, dt_s: float,

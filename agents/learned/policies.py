@@ -22,7 +22,7 @@ from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baselin
 from mpa_gym.agents.controllers.excite import ExcitePolicy
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.learned.config import TrainConfig, load_config
-from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
+from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.runs import legacy_objects
 from mpa_gym.analysis.scenario import load_scenario
@@ -148,7 +148,7 @@ class LearnedPolicy:
         fresh = np.full(n, state is None)
         if episode_start is not None:
             fresh |= np.asarray(episode_start, dtype=bool).reshape(-1)
-        st = new_state(n) if state is None else np.array(state).reshape(n)  # a copy
+        st = self.frontend.new_state(n) if state is None else np.array(state).reshape(n)  # a copy
         obs = self.frontend.observe(raw, st, fresh)
         if self.normalizer is not None:
             obs = self.normalizer.normalize_obs(obs)
@@ -344,6 +344,9 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
         if dt is not None and (run / "config.yaml").is_file():
             check_control_period(load_config(run / "config.yaml"), dt, run)
         policy, cfg = load_run(run, deployed=deployed)
+        if getattr(policy, "features", None) is not None and policy.features.delay_observation:
+            plant = load_scenario((env_kwargs or {}).get("scenario", "nominal")).plant
+            policy.frontend.known_delay_s = (plant.pressure_dead_time_s, plant.pressure_lag_s)
         if cfg.supervisor is not None and supervised and as_given:
             policy = supervise(policy, cfg, env_kwargs)
         return policy, cfg.env_id, cfg

@@ -40,6 +40,14 @@ __all__ = ["ActionSpec", "FeatureSpec", "ForceStiffnessAction", "ForceStiffnessV
            "TrackingErrorObservation", "TrackingErrorVectorObservation", "adapt_time_constant"]
 
 
+def _plant_delays(env: Any, state: np.ndarray, rows: Any) -> None:
+    """The records ``rows`` get their episode's regulator dead time and lag (the delay
+    observation), from the simulated plant of each row."""
+    plants = env.unwrapped.engine.plants
+    for i in rows:
+        state[i]["delay_s"] = (plants[i].pressure_dead_time_s, plants[i].pressure_lag_s)
+
+
 class TrackingErrorObservation(gym.Wrapper):
     """Single env: [observation (left out if errors_only), X̂ − X, V̂ − V, I_0, (I_sh, I_ch)…,
     (a_prev), (fine error), (R_h…, Q_h… if remodulate)] (``frontend.observe_row``); the
@@ -57,6 +65,7 @@ class TrackingErrorObservation(gym.Wrapper):
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.env_obs = obs
+        _plant_delays(self.env, self.state, [0])
         return self.frontend.observe(obs, self.state, True)[0], info
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -84,6 +93,7 @@ class TrackingErrorVectorObservation(VectorWrapper):
     def reset(self, **kwargs: Any) -> tuple[np.ndarray, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
         self.env_obs = obs
+        _plant_delays(self.env, self.state, range(self.num_envs))
         return self.frontend.observe(obs, self.state, True), info
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -100,6 +110,7 @@ class TrackingErrorVectorObservation(VectorWrapper):
                 final[i] = self.frontend.observe(final[i], self.state[i:i + 1].copy(),
                                                  False)[0]
             info["final_obs"] = final
+            _plant_delays(self.env, self.state, np.flatnonzero(done))
         self.env_obs = obs  # a finished env's obs starts a new episode: its record restarts
         return self.frontend.observe(obs, self.state, done), r, te, tr, info
 
