@@ -28,9 +28,9 @@ The observation is the env's own (``MPALeg-v0``: 8 columns, ``MPALegResidual-v0`
 contract in ``mpa_gym.task.contract``), never the features a training wrapper computes from it
 nor another env's. :class:`ObservationCheck` refuses any other shape, an observation whose
 phase columns are not a unit vector (sin φ, cos φ of the reference phase, in every observation
-of these envs: the features have no such pair) and one outside the contract's bounds, naming the
-env id and the shape it takes. The default config's features are 9 wide, as the residual env's
-observation: the shape alone cannot tell them apart.
+of these envs: the features have no such pair) and one whose reference columns are outside the
+contract's bounds, naming the env id and the shape it takes. The default config's features are
+9 wide, as the residual env's observation: the shape alone cannot tell them apart.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from mpa_gym.task.contract import OBS_COS, OBS_SIN, obs_columns, obs_names
+from mpa_gym.task.contract import OBS_COS, OBS_SIN, PLAN, obs_columns, obs_names
 
 # |sin² φ + cos² φ − 1| of an env observation: float32 rounding of two numbers of |.| ≤ 1 is
 # ~2e-7; the features a wrapper computes (errors, integrals, actions) meet this only by accident
@@ -63,11 +63,12 @@ class ObservationCheck:
 
     @functools.cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """The contract's bounds of each column that are numbers (±inf where a bound depends
-        on the task settings: the pressures' upper one)."""
+        """The contract's bounds of the columns the plan fills (reference, phase, k̂: computed,
+        so always within them); ±inf on the measured ones, which a sensor's spike on the rig
+        may push past theirs, and where a bound depends on the task settings."""
         cols = obs_columns(self.env_id == RESIDUAL_ENV)
-        return tuple(np.array([b if isinstance(b, float | int) else sign * np.inf
-                               for b in (getattr(c, side) for c in cols)])
+        return tuple(np.array([b if c.signal in PLAN and isinstance(b, float | int)
+                               else sign * np.inf for c in cols for b in (getattr(c, side),)])
                      for side, sign in (("low", -1), ("high", 1)))
 
     def __call__(self, observation: Any) -> np.ndarray:
