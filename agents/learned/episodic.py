@@ -72,8 +72,24 @@ class ObservationCheck:
                      for side, sign in (("low", -1), ("high", 1)))
 
     def __call__(self, observation: Any) -> np.ndarray:
-        """``observation`` as an array, or ValueError naming the env id and the shape it takes."""
+        """``observation`` as an array, or ValueError naming the env id and the shape it takes
+        (:meth:`refusal`)."""
         obs = np.asarray(observation)
+        if obs.ndim not in (1, 2) or obs.shape[-1] != self.width:
+            raise self.refusal(obs)
+        rows = obs.reshape(-1, self.width)
+        ring = (rows[:, OBS_SIN].astype(np.float64) ** 2
+                + rows[:, OBS_COS].astype(np.float64) ** 2)
+        low, high = self.bounds
+        if not ((np.abs(ring - 1.0) <= PHASE_TOL).all()  # also refuses a NaN phase
+                and not ((rows < low) | (rows > high)).any()):
+            raise self.refusal(obs)
+        return obs
+
+    def refusal(self, obs: np.ndarray) -> ValueError:
+        """The error for an observation the check refuses: what is wrong with it (its shape, and
+        which other env has that width; its phase; a reference column out of bounds) and
+        what the policy takes."""
         w, who = self.width, f"policy {self.run}" if self.run else "this policy"
         take = (f"{who} takes the observation of {self.env_id} itself, shape ({w},) or (n, {w}) "
                 "(the env's, before any wrapper: the policy computes its features itself)")
@@ -82,26 +98,23 @@ class ObservationCheck:
                      if e != self.env_id and obs.ndim in (1, 2)
                      and obs.shape[-1] == len(obs_names(e == RESIDUAL_ENV))]
             like = f" ({other[0]}'s width)" if other else ""
-            raise ValueError(f"observation has shape {obs.shape}{like}; {take}")
+            return ValueError(f"observation has shape {obs.shape}{like}; {take}")
         rows = obs.reshape(-1, w)
         ring = np.abs(rows[:, OBS_SIN].astype(np.float64) ** 2
                       + rows[:, OBS_COS].astype(np.float64) ** 2 - 1.0)
-        if not np.all(ring <= PHASE_TOL):  # also refuses NaN
+        if not np.all(ring <= PHASE_TOL):
             bad = int(np.argmax(~(ring <= PHASE_TOL)))
-            raise ValueError(
+            return ValueError(
                 f"observation row {bad} is not an observation of {self.env_id}: its phase "
                 f"columns (sin_phase, cos_phase) = ({rows[bad, OBS_SIN]:g}, "
                 f"{rows[bad, OBS_COS]:g}) are not a unit vector (wrapped features or another "
                 f"env's observation?); {take}")
         low, high = self.bounds
-        out = (rows < low) | (rows > high)
-        if out.any():
-            r, c = np.argwhere(out)[0]
-            name = obs_names(self.env_id == RESIDUAL_ENV)[c]
-            raise ValueError(f"observation row {r} is not an observation of {self.env_id}: "
-                             f"{name}={rows[r, c]:g} is outside its bounds [{low[c]:g}, "
-                             f"{high[c]:g}]; {take}")
-        return obs
+        r, c = np.argwhere((rows < low) | (rows > high))[0]
+        name = obs_names(self.env_id == RESIDUAL_ENV)[c]
+        return ValueError(f"observation row {r} is not an observation of {self.env_id}: "
+                          f"{name}={rows[r, c]:g} is outside its bounds [{low[c]:g}, "
+                          f"{high[c]:g}]; {take}")
 
 
 class Episodic:
