@@ -240,3 +240,12 @@ def test_the_loaded_policy_reproduces_the_evaluation(run):
         rmse_mm = float(np.sqrt(np.mean(np.array(e)[w] ** 2)) * 1e3)
         # the vector env steps each leg as the single env does (tests/test_vector.py)
         assert rmse_mm == pytest.approx(report[label]["position_rmse_mm"], rel=1e-9), label
+
+
+def test_the_loader_names_what_it_cannot_load(run):
+    from mpa_gym.agents import load_policy
+
+    with pytest.raises(ValueError, match=r"which='last' must be one of \['best', 'final'\]"):
+        load_policy(run, which="last")
+    with pytest.raises(FileNotFoundError, match=r"best_model\.zip not found"):
+        load_policy(run, which="best")  # the tiny run evaluated nothing, so has no best/
