@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from mpa_gym.agents.learned.config import load_config
+from mpa_gym.agents.learned.episodic import ObservationCheck
 from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
@@ -145,9 +147,6 @@ held-out evaluation), checkpoints/, eval/ (evaluations during training), tb/ (Te
 def write_readme(run: Path, features: tuple[int, ...]) -> None:
     """``run/README.txt``: what ``model.zip`` takes (the features of shape ``features``, not
     the env's observation) and how to load the run (``load_policy``)."""
-    from mpa_gym.agents.learned.config import load_config
-    from mpa_gym.agents.learned.episodic import ObservationCheck
-
     env_id = load_config(run / "config.yaml").env_id
     atomic_write_text(run / "README.txt", README.format(
         env_id=env_id, features=features, obs=(ObservationCheck(env_id).width,), run=run))
