@@ -138,7 +138,8 @@ match"). Load the run with its wrappers, normaliser and supervisor instead:
         if terminated or truncated:
             obs, info = env.reset(); policy.reset()
 
-`mpa-gym evaluate {run}` reports it; `mpa-gym rollout --policy {run}` runs it on a rig.
+`mpa-gym evaluate {run}` reports it; `mpa-gym rollout --policy {run} --device URL` runs it
+on a rig.
 Folder: config.yaml (the resolved config), model.zip + vecnormalize.pkl (final), best/ (best
 held-out evaluation), checkpoints/, eval/ (evaluations during training), tb/ (TensorBoard).
 """
