@@ -24,6 +24,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from mpa_gym.agents.learned.episodic import Episodic, ObservationCheck
 from mpa_gym.agents.learned.frontend import FeatureSpec, Frontend, act_row, new_state, observe_row
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
 
@@ -81,14 +82,17 @@ def _forward(raw, state, fresh, cfg, consts, mean, inv_std, clip_obs, weights, s
     act_row(net, raw, st, c, consts, out)
 
 
-class DeployedPolicy:
+class DeployedPolicy(Episodic):
     """A trained run's deterministic action through the compiled path (module docstring).
 
     Build it with :meth:`from_learned`
-    (``mpa_gym.agents.learned.policies.load_run(..., deployed=True)`` does).
+    (``mpa_gym.agents.learned.policies.load_policy(..., deployed=True)`` does).
     ``act(obs, episode_start)`` returns the action in a buffer that the next call overwrites;
-    ``predict`` is the baselines' interface for one observation (the state lives inside the
-    policy, so one instance serves one episode at a time).
+    ``predict`` is the baselines' interface for one observation, called as
+    ``LearnedPolicy.predict`` is (``Episodic``: the state kept when it is not passed back,
+    ``reset()`` or ``episode_start`` to start an episode, the observation checked against the
+    run's env when ``check`` is set). The state lives inside the policy, so one instance
+    serves one episode at a time and takes no batch.
     """
 
     def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]], activation: str,
@@ -96,8 +100,9 @@ class DeployedPolicy:
                  normalizer: tuple[np.ndarray, np.ndarray, float, float] | None = None,
                  dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
                  action_low: np.ndarray | None = None, action_high: np.ndarray | None = None,
-                 params: Params = DEFAULT_PARAMS, stiffness_adapt_s: float | None = None
-                 ) -> None:
+                 params: Params = DEFAULT_PARAMS, stiffness_adapt_s: float | None = None,
+                 check: ObservationCheck | None = None) -> None:
+        self.check = check
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation={activation!r} must be one of {sorted(ACTIVATIONS)}")
         self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s, params)
@@ -178,16 +183,19 @@ class DeployedPolicy:
         space = policy.model.action_space
         return cls(layers, activation, obs_dim, policy.features, norm, policy.dt,
                    policy.force_stiffness, space.low, space.high, params,
-                   policy.stiffness_adapt_s)
+                   policy.stiffness_adapt_s, policy.check)
 
     def reset(self) -> None:
         """The next observation starts an episode (integrals, previous action and stiffness
-        estimator restart)."""
+        estimator restart), for ``act`` and ``predict`` alike."""
+        super().reset()
         self._fresh = True
 
     def act(self, observation: np.ndarray, episode_start: bool = False) -> np.ndarray:
         """The action for one observation (a buffer the next call overwrites)."""
         self._raw[:] = observation
+        if self._fresh or episode_start:  # the rig's delays (delay_observation), as told
+            self._state["delay_s"] = self.frontend.known_delay_s
         _forward(self._raw, self._state, self._fresh or episode_start,
                  self.frontend.settings, self.frontend.consts, self._mean, self._inv_std,
                  self._clip, self._weights, self._shapes, self._offsets, self._act, self._low,
@@ -195,12 +203,10 @@ class DeployedPolicy:
         self._fresh = False
         return self._out
 
-    def predict(self, observation: np.ndarray, state: Any = None,
-                episode_start: np.ndarray | None = None, deterministic: bool = True
-                ) -> tuple[np.ndarray, Any]:
-        """The baselines' interface, one observation: (action, state). The state lives inside
-        (the returned one is a token to pass back); ``episode_start`` or a ``None`` state
-        restarts the integrals."""
+    def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
+                 deterministic: bool) -> tuple[np.ndarray, Any]:
+        """One observation: (action, state). The state lives inside (the returned one is a
+        token to pass back); ``episode_start`` or a ``None`` state restarts the integrals."""
         obs = np.asarray(observation)
         if obs.shape != (self.obs_dim,):
             raise ValueError(f"observation has shape {obs.shape}; a deployed policy takes one "

@@ -11,6 +11,7 @@ wherever the supervisor would have handed the loop to its fallback. Reports labe
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from pathlib import Path
@@ -22,6 +23,7 @@ from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baselin
 from mpa_gym.agents.controllers.excite import ExcitePolicy
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.learned.config import TrainConfig, load_config
+from mpa_gym.agents.learned.episodic import Episodic, ObservationCheck
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.runs import legacy_objects
@@ -33,6 +35,9 @@ from mpa_gym.task.plan import make_plan
 
 ALONE = ":alone"  # a run folder's spec suffix: its policy without its supervisor
 ALONE_LABEL = " (alone)"  # what reports append to the run's name for it
+# a run folder's models (``which``): the model file and its normaliser's
+RUN_MODELS = {"final": ("model.zip", "vecnormalize.pkl"),
+              "best": ("best/best_model.zip", "best/vecnormalize.pkl")}
 
 
 def run_of(spec: str) -> tuple[Path | None, bool]:
@@ -77,7 +82,7 @@ def with_alone(specs: list[str]) -> list[str]:
     return out
 
 
-class LearnedPolicy:
+class LearnedPolicy(Episodic):
     """An SB3 model with its observation normaliser, feature state and action coordinates.
 
     ``predict`` takes the env's own observation (as the baselines do): it appends the tracking
@@ -87,12 +92,16 @@ class LearnedPolicy:
     coordinates to the env's residual action when the model was trained with
     ``ForceStiffnessAction`` (``force_stiffness`` = (force_N, stiffness_rel, residual scale)),
     with its stiffness estimator if it had one (``stiffness_adapt_s``; its state is part of the
-    returned state).
+    returned state). The state not passed back is kept (``Episodic``: per row of a batch,
+    restarted by ``reset()`` or ``episode_start``); ``check`` (set by :meth:`from_config`:
+    the run's env id) refuses an observation that is not that env's own.
     """
 
     def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
                  dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
-                 stiffness_adapt_s: float | None = None) -> None:
+                 stiffness_adapt_s: float | None = None,
+                 check: ObservationCheck | None = None) -> None:
+        self.check = check
         self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s)
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
@@ -123,8 +132,10 @@ class LearnedPolicy:
         return np.clip(a, pol.action_space.low, pol.action_space.high)
 
     @classmethod
-    def from_config(cls, model: Any, normalizer: Any, cfg: TrainConfig) -> LearnedPolicy:
-        """The policy for a model trained with ``cfg``'s wrappers and task."""
+    def from_config(cls, model: Any, normalizer: Any, cfg: TrainConfig, run: str = ""
+                    ) -> LearnedPolicy:
+        """The policy for a model trained with ``cfg``'s wrappers and task (in the run folder
+        ``run``, which its errors name)."""
         task_cfg = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {})
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
         fs, tau = None, None
@@ -133,14 +144,13 @@ class LearnedPolicy:
             fs = (spec.force_N, spec.stiffness_rel, task_cfg.residual_scale_bar)
             tau = spec.stiffness_adapt_s
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
-                   task_cfg.dt_s, fs, tau)
+                   task_cfg.dt_s, fs, tau, ObservationCheck(cfg.env_id, run))
 
-    def predict(self, observation: np.ndarray, state: Any = None,
-                episode_start: np.ndarray | None = None, deterministic: bool = True
-                ) -> tuple[np.ndarray, Any]:
-        """Actions for one observation or a batch; ``state`` (returned, passed back on the next
-        call) is each row's front-end record (``frontend.STATE``: integrals, previous action,
-        stiffness estimator), restarted where ``episode_start`` or when it is None."""
+    def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
+                 deterministic: bool) -> tuple[np.ndarray, Any]:
+        """Actions for one observation or a batch; ``state`` is each row's front-end record
+        (``frontend.STATE``: integrals, previous action, stiffness estimator), restarted where
+        ``episode_start`` or when it is None."""
         raw = np.asarray(observation, dtype=np.float32)
         single = raw.ndim == 1
         raw = raw.reshape(1, -1) if single else raw
@@ -160,18 +170,25 @@ class LearnedPolicy:
 
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
-    """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
+    """(policy, config) of a run folder: the learned policy alone, never its supervisor.
 
-    ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference`` (for
-    the rig's real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded
-    once per process for as long as the run's files are unchanged (a report loads a run for every
-    batch it runs; ``LearnedPolicy`` keeps no state of its own, so they can share it)."""
+    :func:`load_policy` is the loader (supervised as the config says, or not); this is its
+    step that reads the model. ``which``: the ``final`` model or the ``best`` one;
+    ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference``
+    (for the rig's real-time loop) instead of the SB3 one (batches, evaluation). The SB3 model
+    is read once per process for as long as the run's files are unchanged (a report loads a
+    run for every batch it runs); each call returns a policy of its own around it, so the
+    episode state one caller leaves in it (``Episodic``) is no other caller's."""
+    if which not in RUN_MODELS:
+        raise ValueError(f"which={which!r} must be one of {sorted(RUN_MODELS)}")
     run = Path(run_dir)
-    files = (("config.yaml", "model.zip", "vecnormalize.pkl") if which == "final" else
-             ("config.yaml", "best/best_model.zip", "best/vecnormalize.pkl"))
+    files = ("config.yaml", *RUN_MODELS[which])
     stamp = tuple(_stamp(run / name) for name in files)
     if not deployed and stamp[1] is not None:
-        return _load_learned(str(run.resolve()), which, stamp)
+        shared, cfg = _load_learned(str(run.resolve()), which, stamp)
+        policy = copy.copy(shared)
+        policy.reset()
+        return policy, cfg
     return _load_run(run, which, deployed)
 
 
@@ -199,7 +216,7 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
 
     run = Path(run_dir)
     cfg = load_config(run / "config.yaml")
-    model_path = run / ("model.zip" if which == "final" else "best" / Path("best_model.zip"))
+    model_path, norm_path = (run / name for name in RUN_MODELS[which])
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path} not found: is {run} a finished run folder?")
     try:
@@ -207,7 +224,6 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     except Exception as e:  # a truncated zip, a foreign file: zipfile, pickle, torch errors
         raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
     norm = None
-    norm_path = run / ("vecnormalize.pkl" if which == "final" else "best/vecnormalize.pkl")
     if cfg.normalize:
         if not norm_path.is_file():
             raise FileNotFoundError(f"{norm_path} not found (the run normalises observations)")
@@ -218,7 +234,7 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
                                    ) from None
         norm.training = False
         norm.norm_reward = False
-    policy = LearnedPolicy.from_config(model, norm, cfg)
+    policy = LearnedPolicy.from_config(model, norm, cfg, str(run))
     if deployed:
         return DeployedPolicy.from_learned(
             policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
@@ -312,23 +328,83 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
                           else own.get("stiffness"))
     fallback, last = (None if name is None else make_baseline(name, scenario, stiffness, task)
                       for name in (cfg.supervisor.fallback, cfg.supervisor.last_resort))
-    return Supervised(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
-                      load_scenario(scenario).reference.period, cfg.supervisor, last)
+    return SupervisedPolicy(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
+                            load_scenario(scenario).reference.period, cfg.supervisor, last)
 
 
-def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: bool = False,
-                supervised: bool = True) -> tuple[Policy, str, Any]:
-    """(policy, env id, run config or None) for ``ff`` / ``pid`` / ``mbfb``, ``excite`` (the
-    identification excitation), a run folder or ``RUN_DIR:alone`` (:data:`ALONE`).
+class SupervisedPolicy(Episodic, Supervised):
+    """A run's policy under its supervisor (:func:`supervise`), called as a loaded policy is
+    (``Episodic``: the state kept when it is not passed back, the observation checked as the
+    policy's own ``check``)."""
 
-    Baselines are built for the env made with ``env_kwargs`` (scenario, stiffness, task); a run
-    is loaded ``deployed`` (``load_run``) when asked, wrapped in its config's ``supervisor``
-    if it has one (:func:`supervise`) unless ``supervised`` is False or the spec ends in
-    ``:alone`` (the policy alone; its config still holds the section), and refused
-    (``check_control_period``, before its model is loaded) when ``env_kwargs`` sets a
-    ``task.dt_s`` (the control period it will run at: rollout's ``--control-hz``) other than
-    its training one.
+    def __init__(self, policy: Policy, *args: Any, **kwargs: Any) -> None:
+        super().__init__(policy, *args, **kwargs)
+        self.check = getattr(policy, "check", None)
+
+    def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
+                 deterministic: bool) -> tuple[np.ndarray, Any]:
+        return Supervised.predict(self, observation, state, episode_start, deterministic)
+
+
+def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
+                deployed: bool = False, supervised: bool = True, which: str = "final"
+                ) -> tuple[Policy, str, Any]:
+    """Load a controller: a trained run folder (with or without its supervisor) or a built-in
+    one, ready to act on the observations of the env it names.
+
+    Parameters
+    ----------
+    spec : str or path
+        A run folder (what ``mpa-gym train`` writes), the same folder + ``:alone``
+        (:data:`ALONE`, as ``supervised=False``), a baseline (``ff``, ``pid``, ``mbfb``,
+        ``afc``) or ``excite`` (the identification excitation).
+    env_kwargs : dict, optional
+        The keyword arguments of the env the controller will run in (``scenario``,
+        ``stiffness``, ``task``). Baselines, excitation and a supervisor's fallback are built
+        for it (a run's supervisor: over the run's own task settings). A ``task.dt_s`` other
+        than the run's training period is refused before the model is read (a learned
+        policy acts at its training rate only; rollout's ``--control-hz``).
+    deployed : bool
+        A run through the compiled single-observation path
+        (``mpa_gym.agents.learned.inference.DeployedPolicy``: the rig's real-time loop) instead
+        of SB3's torch one (batches). Both give the same actions to 1e-6.
+    supervised : bool
+        A run under its config's ``supervisor`` section (the supervised system, what
+        ``evaluate`` and ``rollout`` run), if it has one; False: the learned policy alone.
+    which : {"final", "best"}
+        A run's ``model.zip`` or ``best/best_model.zip`` (the best held-out evaluation).
+
+    Returns
+    -------
+    policy
+        SB3's ``predict(observation, state=None, episode_start=None, deterministic=True)
+        -> (action, state)`` on the env's own observation, one (d,) or a batch (n, d) (the
+        deployed path: one). A run's policy (``Episodic``) keeps its episode state when the
+        state is not passed back: call ``policy.reset()`` where the env resets (or pass
+        ``episode_start``); it refuses an observation that is not its env's own (a wrapper's
+        features, another env's) with a ValueError naming the env id and the shape.
+    env_id : str
+        The env id it acts on (``MPALegResidual-v0`` or ``MPALeg-v0``).
+    config : TrainConfig or None
+        The run's config (``config.yaml``; ``env_kwargs["task"]`` holds its training task
+        settings), None for a built-in controller.
+
+    Raises
+    ------
+    ValueError
+        ``spec`` names nothing loadable, ``which`` is unknown, or the control period differs
+        from the run's.
+    FileNotFoundError, mpa_gym.files.DamagedFileError
+        A run folder without its model or normaliser, or with a damaged one.
+
+    Examples
+    --------
+    >>> policy, env_id, cfg = load_policy("runs/ppo_residual")
+    >>> env = gym.make(env_id, scenario="load_1kg", task=cfg.env_kwargs.get("task"))
+    >>> obs, info = env.reset(seed=0); policy.reset()
+    >>> action, _ = policy.predict(obs)                               # state kept inside
     """
+    spec = str(spec)
     if spec == "excite":  # system-identification excitation (mpa_gym.agents.controllers.excite)
         kw = env_kwargs or {}
         return (ExcitePolicy(make_plan(kw.get("scenario", "nominal"), kw.get("stiffness"),
@@ -343,7 +419,7 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
         if dt is not None and (run / "config.yaml").is_file():
             check_control_period(load_config(run / "config.yaml"), dt, run)
-        policy, cfg = load_run(run, deployed=deployed)
+        policy, cfg = load_run(run, which, deployed)
         if getattr(policy, "features", None) is not None and policy.features.delay_observation:
             plant = load_scenario((env_kwargs or {}).get("scenario", "nominal")).plant
             policy.frontend.known_delay_s = (plant.pressure_dead_time_s, plant.pressure_lag_s)

@@ -1,7 +1,8 @@
 """The run folder: what ``mpa-gym train`` writes and every loader reads.
 
 A run folder holds ``config.yaml`` (the resolved config), ``model.zip`` + ``vecnormalize.pkl``
-(the final state), ``checkpoints/`` (``ppo_<N>_steps.zip`` + ``ppo_vecnormalize_<N>_steps.pkl``
+(the final state), ``README.txt`` (what ``model.zip`` takes and how to load the run),
+``checkpoints/`` (``ppo_<N>_steps.zip`` + ``ppo_vecnormalize_<N>_steps.pkl``
 and, written last, ``ppo_<N>_steps.json``: the step count and the files' sizes, so only a
 checkpoint with its marker is complete), ``eval/evaluations.{npz,json}`` (the held-out
 evaluations during training), ``best/`` and ``tb/``. Every file is written atomically
@@ -22,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from mpa_gym.agents.learned.config import load_config
+from mpa_gym.agents.learned.episodic import ObservationCheck
 from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
@@ -105,9 +108,49 @@ def write_checkpoint(model: Any, run: Path, *, prepare: Prepare) -> Path:
 
 
 def save_final(model: Any, run: Path, *, prepare: Prepare) -> None:
-    """A checkpoint at the current step count, then ``model.zip`` + ``vecnormalize.pkl``."""
+    """A checkpoint at the current step count, then ``model.zip`` + ``vecnormalize.pkl``, and
+    the folder's ``README.txt`` (:func:`write_readme`)."""
     write_checkpoint(model, run, prepare=prepare)
     save_state(model, run / "model.zip", run / "vecnormalize.pkl", prepare=prepare)
+    write_readme(run, tuple(model.observation_space.shape))
+
+
+README = """\
+A trained run of mpa-gym ({env_id}), written by `mpa-gym train`.
+
+model.zip is the PPO network alone. It takes the run's features, shape {features}: the
+observation of {env_id} (shape {obs}) after the run's wrappers (config.yaml,
+env_wrapper), normalised with vecnormalize.pkl. It does not take the env's own observation.
+`PPO.load("model.zip").predict(obs)` accepts an observation of {env_id} whenever the two
+shapes are equal (SB3 checks the shape only) and returns a wrong, often saturated action;
+`PPO.load("model.zip", env=gym.make("{env_id}"))` refuses it ("Observation spaces do not
+match"). Load the run with its wrappers, normaliser and supervisor instead:
+
+    import gymnasium as gym
+    from mpa_gym.agents import load_policy
+
+    policy, env_id, cfg = load_policy("{run}")   # supervised=False: the policy alone
+    env = gym.make(env_id, scenario="nominal", task=cfg.env_kwargs.get("task"))
+    obs, info = env.reset(seed=0); policy.reset()
+    for _ in range(1000):
+        action, _ = policy.predict(obs)   # keeps its episode state; refuses a wrapped obs
+        obs, reward, terminated, truncated, info = env.step(action)
+        if terminated or truncated:
+            obs, info = env.reset(); policy.reset()
+
+`mpa-gym evaluate {run}` reports it; `mpa-gym rollout --policy {run} --device URL` runs it
+on a rig.
+Folder: config.yaml (the resolved config), model.zip + vecnormalize.pkl (final), best/ (best
+held-out evaluation), checkpoints/, eval/ (evaluations during training), tb/ (TensorBoard).
+"""
+
+
+def write_readme(run: Path, features: tuple[int, ...]) -> None:
+    """``run/README.txt``: what ``model.zip`` takes (the features of shape ``features``, not
+    the env's observation) and how to load the run (``load_policy``)."""
+    env_id = load_config(run / "config.yaml").env_id
+    atomic_write_text(run / "README.txt", README.format(
+        env_id=env_id, features=features, obs=(ObservationCheck(env_id).width,), run=run))
 
 
 def zip_timesteps(path: Path) -> int:
