@@ -125,11 +125,13 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     # the model and the saved normaliser give directly
     policy, cfg = load_run(run)
     assert policy.features == FeatureSpec(**cfg.observation_wrapper)
-    # loaded once while the run's files are unchanged; a run written again is loaded again
-    assert load_run(run)[0] is policy
+    # loaded once while the run's files are unchanged (each caller its own episode state
+    # around the one model); a run written again is loaded again
+    again = load_run(run)[0]
+    assert again is not policy and again.model is policy.model
     st = (run / "model.zip").stat()
     os.utime(run / "model.zip", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
-    assert load_run(run)[0] is not policy
+    assert load_run(run)[0].model is not policy.model
     assert policy.force_stiffness is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
