@@ -391,6 +391,32 @@ def show_tune_baselines(o: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def cmd_calibrate(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.evaluation import calibrate as cal
+
+    if not (Path(a.run_dir) / "config.yaml").is_file():
+        raise ValueError(f"RUN_DIR={a.run_dir!r} is not a run folder (needs config.yaml)")
+    found = cal.calibrate(a.run_dir, **{k: v for k, v in (("n_plants", a.n_plants),
+                                                           ("episode_s", a.episode_s))
+                                         if v is not None})
+    return {**found.as_dict(), "written": str(cal.write(a.run_dir, found)) if a.write else None}
+
+
+def show_calibrate(o: dict[str, Any]) -> str:
+    order = ", ".join(f"{f['controller']} {f['mean_position_rmse_mm']:.3f} mm"
+                      for f in o["fallback_order"])
+    peaks = ", ".join(f"{k} {v:.3f} mm" for k, v in o["peaks_mm"].items())
+    return (f"fallback order (mean position RMSE over {o['n_plants']} training plants): "
+            f"{order}\nthe policy keeps {o['kept_plants']} of {o['n_plants']} plants (it tracks "
+            f"them at least as well as {o['fallback_order'][0]['controller']}); the monitors' "
+            f"highest RMS there: {peaks}"
+            + (f"; dropped (cannot stay quiet there): {', '.join(o['dropped'])}"
+               if o["dropped"] else "")
+            + f"\nrule: {o['rule']}"
+            + (f"\nwritten into {o['written']}" if o["written"] else
+               "\n(--write puts it into the run's config.yaml)"))
+
+
 def cmd_tune(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.agents.training import tune
 
@@ -624,6 +650,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-plants", type=int, default=16, metavar="N",
                    help="plants drawn from the training ranges (each adds its undamped twin)")
     p.add_argument("--seed", type=int, default=0, help="plant draws and sampler seed")
+    p = add("calibrate", "choose a run's supervisor levels and fallback order on its training "
+            "plants (mpa_gym.agents.evaluation.calibrate)", cmd_calibrate, show_calibrate)
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder of mpa-gym train")
+    p.add_argument("--n-plants", type=int, default=None, metavar="N",
+                   help="draws of the run's training randomisation (default 48)")
+    p.add_argument("--episode-s", type=float, default=None, metavar="S",
+                   help="episode length on each plant [s] (default 24)")
+    p.add_argument("--write", action="store_true",
+                   help="write the levels and order into RUN_DIR/config.yaml")
     p = add("tune", "tune hyper-parameters on Optuna; workers sharing --storage and --study-name "
             "share the study", cmd_tune, show_tune)
     p.add_argument("--config", default=None, metavar="YAML",

@@ -6,8 +6,9 @@ run-time assurance in the safe-RL literature): a high-performance controller tha
 verified runs beside a simple one that can, and a monitor hands control to the simple one when
 the loop leaves the region where the first is known to behave. The rule is declared
 (``SupervisorSpec``): a cascade of stages (``Stage``), the learned policy, a fallback baseline
-(``pid`` or ``mbfb``) and optionally a last resort (``ff``, the feedforward alone, or ``afc``,
-the feedforward with adaptive feedforward cancellation); each stage names the monitors that
+(any baseline of ``mpa_gym.agents.controllers.baselines``; the default config names them in the
+order ``mpa_gym.agents.evaluation.calibrate`` measured) and optionally a last resort (another
+baseline, or ``ff``, the feedforward alone); each stage names the monitors that
 judge its loop and the reference periods its loop has to settle first. When one of them trips,
 the next stage drives the rest of the episode (a latch: a controller that destabilised this
 plant once does it again). The last stage drives to the end.
@@ -64,7 +65,7 @@ from mpa_gym.task.contract import OBS_XREF as OXR
 
 POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages' places in the cascade: who drives
 HAND_OVERS = (("fallback_s", FALLBACK), ("last_resort_s", LAST_RESORT))  # report key, stage
-FALLBACKS = ("pid", "mbfb")  # the controllers a stage may name at each place
+FALLBACKS = ("pid", "mbfb")  # the flat form's fallbacks (a declared stage names any baseline)
 # the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
                 "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
@@ -234,7 +235,7 @@ class SupervisorSpec:
                 raise ValueError(f"supervisor.monitors: {m!r} is not one of {list(MONITORS)}")
         if len(set(names)) != len(names):
             raise ValueError(f"supervisor.monitors={list(names)}: each kind at most once")
-        allowed = ("policy", FALLBACKS, tuple(LAST_RESORTS))
+        allowed = ("policy", tuple(BASELINES), tuple(BASELINES))
         if not 2 <= len(self.stages) <= len(allowed):
             raise ValueError(f"supervisor.stages has {len(self.stages)} stage(s): allowed 2 "
                              "(the policy, a fallback) or 3 (and a last resort)")
