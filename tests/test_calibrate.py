@@ -35,8 +35,8 @@ def test_the_replay_is_the_supervisors_own_running_rms():
     # a sag, a growing oscillation off the reference period and a kick
     n_period, steps = 100, 700
     t = np.arange(steps) * DT
-    e = np.stack([2e-3 * np.ones(steps),
-                  1e-4 * np.exp(t / 3) * np.sin(2 * np.pi * t / 0.7),
+    e = np.stack([2.5e-3 * np.ones(steps),
+                  3e-4 * np.exp(t / 3) * np.sin(2 * np.pi * t / 0.7),
                   np.where((t > 2) & (t < 2.1), 2e-2, 0.0)], axis=1)
     tripped = False
     for m in DEFAULT_MONITORS:
