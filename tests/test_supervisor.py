@@ -339,12 +339,13 @@ class Held:
         return self.inner.predict(*args, **kwargs)
 
 
-@pytest.mark.parametrize("name", ["pid", "mbfb"])
+@pytest.mark.parametrize("name", ["pid", "mbfb", "rc"])
 def test_take_over_continues_the_held_command(name):
     # At exact tracking (e = ė = 0) the P and D terms are zero, so the fallback's first output
     # is what its integrator holds. pid: the antagonistic part of the held residual, exactly
-    # (up to float32); mbfb: pressures with the held pressures' ground force (the stiffness is
-    # its own, k̂), on the nominal model at the measured state: to 1e-6 N of a ~40 N force.
+    # (up to float32); rc: the same (its delay line starts empty: no correction yet); mbfb:
+    # pressures with the held pressures' ground force (the stiffness is its own, k̂), on the
+    # nominal model at the measured state: to 1e-6 N of a ~40 N force.
     env = gym.make("MPALegResidual-v0")
     obs, _ = env.reset(seed=3)
     obs = np.repeat(obs[None], 2, axis=0)
@@ -354,7 +355,7 @@ def test_take_over_continues_the_held_command(name):
     held = np.array([[0.30, -0.10], [-0.2, 0.05]])
     state = fb.take_over(obs, held, None, np.array([True, True]))
     a, _ = fb.predict(obs, state)
-    if name == "pid":
+    if name in ("pid", "rc"):
         u = 0.5 * (held[:, 0] - held[:, 1])
         np.testing.assert_allclose(a, np.stack([u, -u], axis=-1), atol=1e-7)
     else:
@@ -405,7 +406,8 @@ def _config(tmp_path, supervisor):
 
 
 @pytest.mark.parametrize("bad, match", [
-    ({"fallback": "ff"}, r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb'\]"),
+    ({"fallback": "ff"},
+     r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb', 'rc'\]"),
     ({"trip": 3.0}, r"mpa_gym\.supervisor: unknown key\(s\) \['trip'\]; allowed keys"),
     ({"last_resort": "pid"},
      r"mpa_gym\.supervisor\.last_resort='pid': allowed null or \['ff', 'afc'\]"),
@@ -459,7 +461,7 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
     ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
      r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
     ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},
-     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb'\]"),
+     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb', 'rc'\]"),
     ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "mbfb"}]},
      r"supervisor\.stages\[2\]\.controller='mbfb': allowed \['ff', 'afc'\]"),
     ({"stages": [{"controller": "policy", "monitors": ["drift"]}, {"controller": "pid"}]},
@@ -476,7 +478,8 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
     ({"stages": [DEFAULT_STAGES_CFG[0]]},
      r"supervisor\.stages has 1 stage\(s\): allowed 2 \(the policy, a fallback\) or 3"),
     ({"stages": DEFAULT_STAGES_CFG, "fallback": "pid"},
-     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are \['monitors', 'stages'\]"),
+     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are "
+     r"\['gains', 'monitors', 'stages'\]"),
 ])
 def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
     with pytest.raises(ConfigError, match=r"mpa_gym\." + match):

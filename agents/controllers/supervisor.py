@@ -58,13 +58,14 @@ import numpy as np
 
 import mpa_gym.agents.controllers.baselines as baselines
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy
+from mpa_gym.agents.controllers.gains import load_gains
 from mpa_gym.model.params import check_keys, check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 
 POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages' places in the cascade: who drives
 HAND_OVERS = (("fallback_s", FALLBACK), ("last_resort_s", LAST_RESORT))  # report key, stage
-FALLBACKS = ("pid", "mbfb")  # the controllers a stage may name at each place
+FALLBACKS = ("pid", "mbfb", "rc")  # the controllers a stage may name at each place
 # the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
                 "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
@@ -224,10 +225,14 @@ class SupervisorSpec:
 
     monitors: tuple[Monitor, ...] = DEFAULT_MONITORS  # one of each kind at most
     stages: tuple[Stage, ...] = DEFAULT_STAGES  # the policy, a fallback, a last resort
+    # the later stages' gains (mpa_gym.agents.controllers.gains): a gains file's path or its
+    # ``gains`` mapping inline, read once into the mapping; none: the baselines' defaults
+    gains: Any = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "monitors", tuple(self.monitors))
         object.__setattr__(self, "stages", tuple(self.stages))
+        object.__setattr__(self, "gains", load_gains(self.gains, "supervisor.gains"))
         names = tuple(m.name for m in self.monitors)
         for m in self.monitors:
             if type(m) is not MONITORS.get(m.name):
@@ -272,7 +277,7 @@ class SupervisorSpec:
         folders written before (``from_flat``). Unknown keys are refused by name."""
         if isinstance(value, cls):
             return value
-        declared = ["monitors", "stages"]
+        declared = ["monitors", "stages", "gains"]
         if not isinstance(value, dict):
             raise ValueError(f"supervisor={value!r} must be a mapping with keys {declared} "
                              f"(or the flat form's {list(FLAT_KEYS)})")
@@ -284,7 +289,8 @@ class SupervisorSpec:
         used = {m for s in stages for m in s.monitors}
         monitors = _monitors(value.get("monitors"))
         # the monitors the stages use (if they name none known, all: the error lists them)
-        return cls(tuple(m for m in monitors if m.name in used) or monitors, stages)
+        return cls(tuple(m for m in monitors if m.name in used) or monitors, stages,
+                   value.get("gains"))
 
     @classmethod
     def from_flat(cls, value: dict[str, Any]) -> SupervisorSpec:
