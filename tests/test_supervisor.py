@@ -19,6 +19,7 @@ from mpa_gym.agents.cli import show_rollout
 from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
+    FALLBACK,
     GRACE_PERIODS,
     Divergence,
     LimitCycle,
@@ -32,6 +33,7 @@ from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.evaluation.robustness import _cell as robustness_cell
 from mpa_gym.agents.evaluation.robustness import _scenario, cell_metrics, run_batches
 from mpa_gym.agents.learned.config import ConfigError, parse_config
+from mpa_gym.agents.learned.policies import supervise
 from mpa_gym.agents.rig.rollout import read_log, rollout
 from mpa_gym.agents.training.train import train
 from mpa_gym.analysis.scenario import load_scenario
@@ -981,3 +983,23 @@ class RefSupervised:
         """Per row, who drives: ``REF_POLICY``, ``REF_FALLBACK`` or ``REF_LAST_RESORT`` (None
         before the first step)."""
         return None if state is None else np.asarray(state[2])[:, REF_M_STAGE].astype(np.int8)
+
+
+def test_rc_is_a_stage_controller_with_its_gains(tmp_path):
+    # A declared cascade policy → rc → afc, with rc's gains inline: the fallback is rc built with
+    # them, and a policy that sags the leg (a constant antagonistic residual of −0.1 bar: ~7 mm
+    # on the nominal model's 68 mm/bar) trips a 2 mm divergence level and is handed to rc,
+    # which brings the loaded leg back to the reference (its error over the last 3 of 6
+    # periods under 1 mm, the recovery band) without the last resort.
+    cfg = _config(tmp_path, {"monitors": {"divergence": {"level_mm": 2.0}}, "stages": [
+        {"controller": "policy", "monitors": ["divergence"]},
+        {"controller": "rc", "monitors": ["divergence"], "grace_periods": 1},
+        {"controller": "afc"}], "gains": {"rc": {"learn": 0.2}}})
+    sc = _sc(18.0)
+    sup = supervise(Constant(-0.1), cfg, {"scenario": sc})
+    assert type(sup.controllers[0]).__name__ == "RepetitiveControl"
+    assert sup.controllers[0].learn == 0.2
+    (run,) = run_batches([sup], sc, [{"extra_mass_kg": 0.5}], 3)
+    assert run["fallback"][:, 0].max() == FALLBACK
+    e = (run["x"] - run["x_ref"])[-900:, 0]
+    assert np.sqrt(np.mean(e**2)) < 1e-3

@@ -326,7 +326,7 @@ def markdown(report: dict[str, Any]) -> str:
                    "(rliable); recovery is their median. " + "; ".join(
                        f"{g}: {len(v['runs'])} runs ({', '.join(v['runs'])})"
                        for g, v in groups.items()) + ".")
-    if any(Path(c).name == c and c not in BASELINES for c in ctrls):
+    if any(Path(c).name == c and not builds_per_scenario(c) for c in ctrls):
         out.append("A learned policy given as a single run has no interval (n = 1): train "
                    "several seeds (`mpa-gym train --seeds 0 1 2 3 4`) and pass all the runs.")
     if report.get("supervisors"):
