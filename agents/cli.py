@@ -217,6 +217,8 @@ def show_figures(o: dict[str, Any]) -> str:
 def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym import bench
 
+    if a.gains is not None and a.loop is None:
+        raise ValueError(f"--gains {a.gains!r} goes with --loop (the controller it tunes)")
     if a.loop is not None:
         from mpa_gym.agents.rig.rollout import loop_benchmark
 

@@ -220,6 +220,7 @@ OTHER = [
      ["--gains", "missing.yaml", "cannot be read"]),
     (["evaluate", "--gains", "{list}", "--out", "{tmp}/ev"], ["--gains", "list.yaml"]),
     (["bench", "--loop", "no_such_mod:Ctrl", "--repeats", "1"], ["--loop", "no_such_mod:Ctrl"]),
+    (["bench", "--gains", "{tmp}/g.yaml"], ["--gains", "--loop"]),
     (["tune-baselines", "--out", "{folder}"], ["--out", "folder", "is a folder"]),
     (["figures", "--out", "{file}"], ["--out", "a_file", "is a file"]),
     (["emulate", "--udp", "--host", "999.1.1.1"], ["--host", "999.1.1.1"]),
