@@ -217,10 +217,13 @@ def show_figures(o: dict[str, Any]) -> str:
 def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym import bench
 
+    if a.gains is not None and a.loop is None:
+        raise ValueError(f"--gains {a.gains!r} goes with --loop (the controller it tunes)")
     if a.loop is not None:
         from mpa_gym.agents.rig.rollout import loop_benchmark
 
-        return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig)}
+        return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig,
+                                       gains=_gains(a))}
     if a.inference is not None:
         from mpa_gym.agents.rig.bench import benchmark
 
@@ -311,7 +314,7 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
     scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
     report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness,
-                      plots_dir=Path(a.out) / "plots")
+                      plots_dir=Path(a.out) / "plots", gains=_gains(a))
     paths = write_report(report, a.out)
     data = json.loads(paths["json"].read_text())
     return {"results": data["results"], "robustness": data.get("robustness"),
@@ -370,12 +373,24 @@ def show_evaluate(o: dict[str, Any]) -> str:
             + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
 
 
+def _gains(a: argparse.Namespace) -> Any:
+    """The baselines' gains of ``--gains FILE`` (``mpa_gym.agents.controllers.gains``)."""
+    from mpa_gym.agents.controllers.gains import load_gains
+
+    return load_gains(a.gains, "--gains")
+
+
 def cmd_tune_baselines(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.agents.learned.config import DEFAULT_CONFIG
-    from mpa_gym.agents.training.tune_baselines import tune
+    from mpa_gym.agents.training.tune_baselines import tune, write_gains
 
-    return {"results": [tune(name, a.config or DEFAULT_CONFIG, a.n_trials, a.n_plants, a.seed)
-                        for name in a.policy]}
+    out = None if a.out is None else write_gains(None, a.out)  # writable: checked first
+    kw = {} if a.episode_s is None else {"episode_s": a.episode_s}
+    results = [tune(name, a.config or DEFAULT_CONFIG, a.n_trials, a.n_plants, a.seed, **kw)
+               for name in a.policy]
+    if out is not None:
+        write_gains(results, out)
+    return {"results": results, "out": None if out is None else str(out)}
 
 
 def show_tune_baselines(o: dict[str, Any]) -> str:
@@ -388,6 +403,9 @@ def show_tune_baselines(o: dict[str, Any]) -> str:
                      f"{r['tuned_on']['n_plants']} training plants (and as many undamped "
                      f"twins) of {r['tuned_on']['config']}, "
                      f"{r['tuned_on']['budget']}")
+    if o.get("out"):
+        lines.append(f"wrote {o['out']} (evaluate / rollout / bench --loop --gains FILE, "
+                     "a run config's supervisor.gains)")
     return "\n".join(lines)
 
 
@@ -498,6 +516,7 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
 def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.agents.rig.rollout import rollout
 
+    gains = _gains(a)  # checked before the emulator starts
     emu = link = None
     device = a.device
     if a.dry_run:
@@ -520,7 +539,7 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
 
     try:
         out = rollout(a.policy, device, a.log, a.episodes, a.scenario, a.control_hz,
-                      a.episode_s, realtime=a.realtime)
+                      a.episode_s, realtime=a.realtime, gains=gains)
     except (HardwareFault, TransportError) as e:  # the rig is vented; the log is on disk
         raise CommandStopped(None, f"STOPPED, rig vented: {e} (log: {a.log})", 3) from None
     except KeyboardInterrupt as e:
@@ -628,7 +647,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("evaluate", "every controller on the paper's scenarios and held-out plants",
             cmd_evaluate, show_evaluate)
     p.add_argument("--policy", nargs="+", default=["ff", "pid", "mbfb"],
-                   metavar="RUN_DIR|ff|pid|mbfb|afc", help="controllers (default ff pid mbfb)")
+                   metavar="RUN_DIR|ff|pid|mbfb|afc|rc|module:Class",
+                   help="controllers (default ff pid mbfb); module:Class: your own "
+                        "(docs/design.md, \"Your own controller\")")
+    p.add_argument("--gains", default=None, metavar="FILE.yaml",
+                   help="the baselines' gains (`mpa-gym tune-baselines --out` writes one)")
     p.add_argument("--scenarios", nargs="+", default=None, metavar="NAME_OR_YAML",
                    help="default: the paper's scenarios and the held-out plants")
     p.add_argument("--out", default="runs/eval", metavar="DIR", help="report folder")
@@ -642,7 +665,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
             "and their undamped twins (Optuna TPE, mean position RMSE; unstable counts as "
             "failed)", cmd_tune_baselines, show_tune_baselines)
-    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb"])
+    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb", "rc"])
     p.add_argument("--config", default=None, metavar="YAML",
                    help="PPO config whose training scenario gives the plants (default: the "
                         "default PPO config, mpa_gym.agents.learned.config.DEFAULT_CONFIG)")
@@ -650,6 +673,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n-plants", type=int, default=16, metavar="N",
                    help="plants drawn from the training ranges (each adds its undamped twin)")
     p.add_argument("--seed", type=int, default=0, help="plant draws and sampler seed")
+    p.add_argument("--episode-s", type=float, default=None, metavar="S",
+                   help="episode length per plant (default 15 s; rc learns over periods: "
+                        "its gains were tuned with 30)")
+    p.add_argument("--out", default=None, metavar="FILE.yaml",
+                   help="also write the tuned gains as a gains file (evaluate / rollout / "
+                        "bench --loop --gains FILE, a run config's supervisor.gains)")
     p = add("calibrate", "choose a run's supervisor levels and fallback order on its training "
             "plants (mpa_gym.agents.evaluation.calibrate)", cmd_calibrate, show_calibrate)
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run folder of mpa-gym train")
@@ -711,9 +740,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
     p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
             cmd_rollout, show_rollout)
-    p.add_argument("--policy", required=True, metavar="RUN_DIR|ff|pid|mbfb|afc|excite",
-                   help="a run folder, a baseline, or excite: the safe excitation whose log "
-                        "`mpa-gym identify` fits")
+    p.add_argument("--policy", required=True,
+                   metavar="RUN_DIR|ff|pid|mbfb|afc|rc|excite|module:Class",
+                   help="a run folder, a baseline, your own controller class, or excite: the "
+                        "safe excitation whose log `mpa-gym identify` fits")
+    p.add_argument("--gains", default=None, metavar="FILE.yaml",
+                   help="the baselines' gains (`mpa-gym tune-baselines --out` writes one)")
     p.add_argument("--device", default=None, metavar="serial:///dev/ttyX|udp://HOST:PORT")
     p.add_argument("--dry-run", action="store_true", help="start an emulator and use it")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
@@ -760,7 +792,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--inference: actions timed on the deployed path (SB3: N/10)")
     p.add_argument("--no-emulator", action="store_true",
                    help="--inference: without the emulator process")
-    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb|afc",
+    p.add_argument("--loop", default=None, metavar="RUN_DIR|ff|pid|mbfb|afc|rc|module:Class",
                    help="instead: the rig loop's overruns, jitter and latency against a device "
                         "emulator in another process, each run beside the machine's floor (the "
                         "same wait with no work)")
@@ -772,6 +804,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--loop: floor/loop pairs (default 3)")
     p.add_argument("--rig", default="nominal", metavar="NAME_OR_YAML",
                    help="--loop: the plant the emulator plays (default nominal)")
+    p.add_argument("--gains", default=None, metavar="FILE.yaml",
+                   help="--loop: the baselines' gains (`mpa-gym tune-baselines --out`)")
     return parser
 
 

@@ -19,6 +19,7 @@ from mpa_gym.agents.cli import show_rollout
 from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
+    FALLBACK,
     GRACE_PERIODS,
     Divergence,
     LimitCycle,
@@ -32,6 +33,7 @@ from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.evaluation.robustness import _cell as robustness_cell
 from mpa_gym.agents.evaluation.robustness import _scenario, cell_metrics, run_batches
 from mpa_gym.agents.learned.config import ConfigError, parse_config
+from mpa_gym.agents.learned.policies import supervise
 from mpa_gym.agents.rig.rollout import read_log, rollout
 from mpa_gym.agents.training.train import train
 from mpa_gym.analysis.scenario import load_scenario
@@ -339,12 +341,13 @@ class Held:
         return self.inner.predict(*args, **kwargs)
 
 
-@pytest.mark.parametrize("name", ["pid", "mbfb"])
+@pytest.mark.parametrize("name", ["pid", "mbfb", "rc"])
 def test_take_over_continues_the_held_command(name):
     # At exact tracking (e = ė = 0) the P and D terms are zero, so the fallback's first output
     # is what its integrator holds. pid: the antagonistic part of the held residual, exactly
-    # (up to float32); mbfb: pressures with the held pressures' ground force (the stiffness is
-    # its own, k̂), on the nominal model at the measured state: to 1e-6 N of a ~40 N force.
+    # (up to float32); rc: the same (its delay line starts empty: no correction yet); mbfb:
+    # pressures with the held pressures' ground force (the stiffness is its own, k̂), on the
+    # nominal model at the measured state: to 1e-6 N of a ~40 N force.
     env = gym.make("MPALegResidual-v0")
     obs, _ = env.reset(seed=3)
     obs = np.repeat(obs[None], 2, axis=0)
@@ -354,7 +357,7 @@ def test_take_over_continues_the_held_command(name):
     held = np.array([[0.30, -0.10], [-0.2, 0.05]])
     state = fb.take_over(obs, held, None, np.array([True, True]))
     a, _ = fb.predict(obs, state)
-    if name == "pid":
+    if name in ("pid", "rc"):
         u = 0.5 * (held[:, 0] - held[:, 1])
         np.testing.assert_allclose(a, np.stack([u, -u], axis=-1), atol=1e-7)
     else:
@@ -405,7 +408,8 @@ def _config(tmp_path, supervisor):
 
 
 @pytest.mark.parametrize("bad, match", [
-    ({"fallback": "ff"}, r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb'\]"),
+    ({"fallback": "ff"},
+     r"mpa_gym\.supervisor\.fallback='ff': allowed \['pid', 'mbfb', 'rc'\]"),
     ({"trip": 3.0}, r"mpa_gym\.supervisor: unknown key\(s\) \['trip'\]; allowed keys"),
     ({"last_resort": "pid"},
      r"mpa_gym\.supervisor\.last_resort='pid': allowed null or \['ff', 'afc'\]"),
@@ -459,7 +463,7 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
     ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
      r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
     ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},
-     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb'\]"),
+     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb', 'rc'\]"),
     ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "mbfb"}]},
      r"supervisor\.stages\[2\]\.controller='mbfb': allowed \['ff', 'afc'\]"),
     ({"stages": [{"controller": "policy", "monitors": ["drift"]}, {"controller": "pid"}]},
@@ -476,7 +480,8 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
     ({"stages": [DEFAULT_STAGES_CFG[0]]},
      r"supervisor\.stages has 1 stage\(s\): allowed 2 \(the policy, a fallback\) or 3"),
     ({"stages": DEFAULT_STAGES_CFG, "fallback": "pid"},
-     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are \['monitors', 'stages'\]"),
+     r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are "
+     r"\['gains', 'monitors', 'stages'\]"),
 ])
 def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
     with pytest.raises(ConfigError, match=r"mpa_gym\." + match):
@@ -978,3 +983,23 @@ class RefSupervised:
         """Per row, who drives: ``REF_POLICY``, ``REF_FALLBACK`` or ``REF_LAST_RESORT`` (None
         before the first step)."""
         return None if state is None else np.asarray(state[2])[:, REF_M_STAGE].astype(np.int8)
+
+
+def test_rc_is_a_stage_controller_with_its_gains(tmp_path):
+    # A declared cascade policy → rc → afc, with rc's gains inline: the fallback is rc built with
+    # them, and a policy that sags the leg (a constant antagonistic residual of −0.1 bar: ~7 mm
+    # on the nominal model's 68 mm/bar) trips a 2 mm divergence level and is handed to rc,
+    # which brings the loaded leg back to the reference (its error over the last 3 of 6
+    # periods under 1 mm, the recovery band) without the last resort.
+    cfg = _config(tmp_path, {"monitors": {"divergence": {"level_mm": 2.0}}, "stages": [
+        {"controller": "policy", "monitors": ["divergence"]},
+        {"controller": "rc", "monitors": ["divergence"], "grace_periods": 1},
+        {"controller": "afc"}], "gains": {"rc": {"learn": 0.2}}})
+    sc = _sc(18.0)
+    sup = supervise(Constant(-0.1), cfg, {"scenario": sc})
+    assert type(sup.controllers[0]).__name__ == "RepetitiveControl"
+    assert sup.controllers[0].learn == 0.2
+    (run,) = run_batches([sup], sc, [{"extra_mass_kg": 0.5}], 3)
+    assert run["fallback"][:, 0].max() == FALLBACK
+    e = (run["x"] - run["x_ref"])[-900:, 0]
+    assert np.sqrt(np.mean(e**2)) < 1e-3

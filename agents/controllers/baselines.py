@@ -23,6 +23,12 @@ true plant).
   where pid's and mbfb's bandwidth limits them to ~30 ms. It is the supervisor's last resort
   (``mpa_gym.agents.controllers.supervisor``), not a tracking controller: it is slow and knows
   only ω₀.
+- ``RepetitiveControl`` (``rc``): feedforward + pid + a plug-in repetitive controller (Hara,
+  Yamamoto, Omata and Nakano, "Repetitive control system", IEEE TAC 1988; Tomizuka, Tsao and
+  Chew's discrete-time prototype, 1989): a delay line of one reference period that learns, period
+  by period, the error that repeats with the reference, every harmonic within its robustness
+  filter's band, and shifts the error pid sees by it. Its lead and filter are designed from the
+  nominal model (``repetitive_design``).
 
 Both PID laws are what a control engineer would field: the derivative acts on the measured
 velocity error through a first-order low-pass filter (time constant ``tf_s``; 0: unfiltered), and
@@ -39,12 +45,13 @@ import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
 from mpa_gym.design.feedforward import FeedforwardDesign, affine_in_pressures
-from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params
+from mpa_gym.model.dynamics import force_terms
+from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
@@ -63,6 +70,12 @@ class Policy(Protocol):
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
                 ) -> tuple[np.ndarray, Any]: ...
+
+
+# A repetitive controller's memory must contract from one period to the next by at least this
+# factor at every frequency above half the reference's, on the nominal model and every delay of
+# its margin (``repetitive_design``): below 1 for convergence, with room for the model's error.
+CONTRACTION_MAX = 0.95
 
 
 @dataclass
@@ -126,9 +139,11 @@ class _PlanPolicy:
         return out
 
     def _pid(self, obs: np.ndarray, state: Any, episode_start: np.ndarray | None, kp: float,
-             ki: float, kd: float, tf: float) -> tuple[np.ndarray, np.ndarray]:
-        """(Kp e + Ki ∫e + Kd ė_f, state) for e = X̂ − X, ė_f the measured V̂ − V low-pass
-        filtered with time constant ``tf`` [s].
+             ki: float, kd: float, tf: float, offset: np.ndarray | float = 0.0
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """(Kp e + Ki ∫e + Kd ė_f, state) for e = X̂ − X + ``offset`` [m] (a repetitive
+        controller's correction of the reference; the derivative acts on the measurement
+        alone), ė_f the measured V̂ − V low-pass filtered with time constant ``tf`` [s].
 
         The state, one row per observation, is (∫e, ė_f, s): s ∈ {−1, 0, 1} is the direction
         the last output saturated in (``_saturated`` sets it), and ∫e stops integrating errors
@@ -140,7 +155,7 @@ class _PlanPolicy:
         if episode_start is not None:
             fresh |= np.asarray(episode_start, dtype=bool).reshape(-1)
         st[fresh] = 0.0
-        e = obs[:, OXR] - obs[:, OX]
+        e = obs[:, OXR] - obs[:, OX] + offset
         de = obs[:, OVR] - obs[:, OV]
         st[:, 0] += np.where(self._winding(st, e), 0.0, e * self.cfg.dt_s)
         alpha = self.cfg.dt_s / (tf + self.cfg.dt_s)
@@ -289,6 +304,198 @@ class AdaptiveFeedforward(_PlanPolicy):
         return (a[0] if single else a), st
 
 
+class RepetitiveDesign(NamedTuple):
+    """What :func:`repetitive_design` derives for one plan: the delay line and its filters."""
+
+    period_steps: int  # N = T / dt, the delay line's length (one reference period)
+    lead_steps: int  # m, the phase lead: e is taken m steps later in the past period
+    taps: np.ndarray  # (2q + 1,) Q's zero-phase FIR weights, i = −q … q (sum 1, all > 0)
+    gain: float  # k_r [m/m]
+    worst_contraction: float  # max over ω ≥ ω₀/2 and the delay margin of |Q (1 − k_r z^m H)|
+
+
+@functools.lru_cache(maxsize=64)
+def repetitive_design(design: FeedforwardDesign, dt: float, params: Params, learn: float,
+                      delay_margin_s: float, pid: tuple[float, float, float, float]
+                      ) -> RepetitiveDesign:
+    """The lead m and the robustness filter Q of :class:`RepetitiveControl`, from the nominal
+    model alone (what the rig knows).
+
+    The model: the leg linearised along the reference and averaged over a period,
+    m δẌ = −k̄ δX − c̄ δV + Ḡ u (m the nominal mass, k̄ the mean of Eq. 23's stiffness at the
+    design's pressures, c̄ = −∂F/∂V, Ḡ = ∂F/∂u for the antagonistic u [bar]), held over each
+    control period (zero-order hold: the one-step delay from command to measurement: P(z)), in
+    the loop of the PID law ``pid`` = (Kp, Ki, Kd, t_f) (C(z)). The RC's correction r shifts the
+    error the PID's proportional and integral terms see, so it reaches the tracking error
+    through H = P C_PI / (1 + P C), C_PI = Kp + Ki dt / (1 − z⁻¹): near 1 in phase and gain
+    over the PID's bandwidth. From one period to the next the memory obeys
+    r_{j+1} = Q (1 − k_r z^m H) r_j + (the periodic error it learns), so it converges where
+    |Q (1 − k_r z^m H)| < 1 at every frequency (Tomizuka, Tsao & Chew, "Analysis and synthesis
+    of discrete-time repetitive controllers", J. Dyn. Sys. Meas. Control 1989; Hara et al.,
+    "Repetitive control system", IEEE TAC 1988).
+
+    - k_r = ``learn`` / |H(ω₀)|: the share of the fundamental's error learned per period.
+    - Q: a Gaussian FIR, weights ∝ exp(−i² / 2σ²), i = −q … q, q = ⌈3σ⌉, centred on the
+      delayed sample (zero phase: it acts on samples of the past period). All weights are
+      positive and sum to 1, so |Q| ≤ 1 at every frequency, with equality only at ω = 0.
+    - The plant's delay is not the model's: a rig's regulator adds dead time and lag. The
+      contraction is required for every extra dead time τ in [0, ``delay_margin_s``] (P
+      replaced by P e^{−jωτ}, in H's numerator and in its loop).
+    - m and σ: over the leads m = 0 … min(N/4, N − q − 1) (every sample Q and the lead ask for
+      lies in the past period) and σ on a geometric grid from half a step to N/8 steps, the
+      smallest σ (the widest band: the most harmonics learned) for which the worst case of
+      the contraction over ω ≥ ω₀/2 and the delays stays below ``CONTRACTION_MAX``; for it, the
+      m with the smallest worst case. The lead compensates the phase H loses to the model's
+      and the margin's delays over Q's band.
+
+    Raises ValueError (naming the fields) when no (m, σ) meets the bound.
+    """
+    from scipy import signal
+
+    N = round(design.period / dt)
+    if N < 8 or abs(design.period / dt - N) > 1e-9 * N:
+        raise ValueError(f"rc: the reference period {design.period:g} s is not a whole number "
+                         f"(>= 8) of control periods dt_s={dt:g} s; a repetitive controller's "
+                         "delay line is one period long")
+    t = np.arange(N) * dt
+    s = design.sample(t)
+    pr = design.pressures(t)
+    c = affine_in_pressures(s.x_ref, s.v_ref, params)
+    k = float(np.mean(c.k0 + np.einsum("ij,ij->i", c.J[:, 1, :], pr)))
+    gain = float(np.mean(c.J[:, 0, 0] - c.J[:, 0, 1])) * BAR  # [N/bar]
+    damp = float(np.mean(-force_terms(s.x_ref, s.v_ref, pr[:, 0], pr[:, 1], params).dF_dV))
+    num, den, _ = signal.cont2discrete(([gain], [params.leg.m, damp, k]), dt, method="zoh")
+    w0 = 2 * math.pi / design.period
+    w = np.concatenate([[w0], np.linspace(0.5 * w0, math.pi / dt, 1024)])  # [rad/s]
+    z = np.exp(1j * w * dt)
+    P = np.polyval(np.ravel(num), z) / np.polyval(den, z)  # [m/bar]
+    kp, ki, kd, tf = pid
+    alpha = dt / (tf + dt)
+    c_pi = kp + ki * dt / (1.0 - 1.0 / z)
+    C = c_pi + kd * 1j * w * alpha / (1.0 - (1.0 - alpha) / z)
+    Pd = P[None, :] * np.exp(-1j * np.outer(np.linspace(0.0, delay_margin_s, 7), w))
+    H = Pd * c_pi / (1.0 + Pd * C)  # (delays, frequencies); row 0 the nominal model
+    if not abs(H[0, 0]) > 0.0:
+        raise ValueError("rc: with kp_bar_per_m=0 and ki_bar_per_m_s=0 the correction has no "
+                         "way into the loop; a repetitive controller needs the PID's P or I")
+    kr = learn / abs(H[0, 0])
+    for sigma in np.geomspace(0.5, N / 8, 48):
+        q = math.ceil(3 * sigma)
+        i = np.arange(-q, q + 1)
+        taps = np.exp(-0.5 * (i / sigma) ** 2)
+        taps /= taps.sum()
+        Q = taps @ np.cos(np.outer(i, w * dt))  # zero phase: real
+        leads = np.arange(0, min(N // 4, N - q - 1) + 1)
+        factor = Q * (1.0 - kr * np.exp(1j * np.outer(leads, w * dt))[:, None, :]
+                      * H[None])  # (leads, delays, frequencies)
+        worst = np.abs(factor).max(axis=(1, 2))
+        if leads.size and worst.min() < CONTRACTION_MAX:
+            m = int(np.argmin(worst))
+            return RepetitiveDesign(N, int(leads[m]), taps, kr, float(worst[m]))
+    raise ValueError(f"rc: no lead and robustness filter keep the repetitive loop contracting "
+                     f"with learn={learn:g} and delay_margin_s={delay_margin_s:g} s on the "
+                     "nominal model; lower learn or delay_margin_s")
+
+
+@dataclass
+class RepetitiveControl(PIDResidual):
+    """Feedforward + PID + a plug-in repetitive controller (internal-model principle: a delay
+    line of one reference period; Hara et al. 1988, Tomizuka's discrete-time prototype).
+
+    The PID (the pid baseline's gains, inherited) acts on e + r, r [m] the RC's correction of
+    the error its proportional and integral terms see (the plug-in form: the RC leaves the
+    loop the PID closed as it is, and so its damping of the leg's 1.9 Hz resonance and its
+    rejection of what does not repeat, a kick or noise, which the delay line cannot):
+
+        r[k] = Σ_i Q_i (r[k − N + i] + k_r e[k − N + m + i]),  i = −q … q,
+
+    N = T / dt steps, e = X̂ − X; the residual is (+u, −u) for the PID's u [bar]. Period by
+    period it learns the periodic error the feedforward and the PID leave (the sag and lag of
+    a load, a mismatched gain, a periodic disturbance) and cancels every harmonic of the
+    reference inside Q's band, not only the first as ``afc`` does. The lead m and Q are
+    designed from the nominal model and the PID gains (:func:`repetitive_design`); every
+    sample they use lies in the past period.
+
+    Anti-windup as ``_pid``: while the output is saturated, the memory does not learn an
+    increment that pushes further into the saturation.
+
+    State, one row per observation: (∫e, ė_f, k, r ring of L, e ring of L, s), k the steps
+    since the episode began, L = N + q + 1 (the longest over a stack's rows), s the direction
+    the last output saturated in."""
+
+    # gains from `mpa-gym tune-baselines` (TUNED_ON["rc"])
+    learn: float = 0.3414  # share of the fundamental's error learned per period, k_r |H(ω₀)|
+    delay_margin_s: float = 0.1084  # [s] extra dead time Q keeps the memory contracting for
+
+    def __post_init__(self) -> None:
+        check_range("rc.learn", self.learn, 0.0, 2.0, low_open=True, high_open=True)
+        check_range("rc.delay_margin_s", self.delay_margin_s, 0.0, 0.2, unit="s")
+        for p in self.row_plans or (self.plan,):
+            self.design_of(p)
+
+    def design_of(self, plan: TaskPlan) -> RepetitiveDesign:
+        """The delay line, lead and filter for rows following ``plan``."""
+        return repetitive_design(plan.design, self.cfg.dt_s, self.params, float(self.learn),
+                                 float(self.delay_margin_s),
+                                 (self.kp_bar_per_m, self.ki_bar_per_m_s, self.kd_bar_s_per_m,
+                                  self.tf_s))
+
+    def _width(self) -> int:
+        """The state's columns: 4 + 2 L, L the longest of the rows' N + q + 1."""
+        return 4 + 2 * max(d.period_steps + len(d.taps) // 2 + 1
+                           for d in map(self.design_of, self.row_plans or (self.plan,)))
+
+    def predict(self, observation: np.ndarray, state: Any = None,
+                episode_start: np.ndarray | None = None, deterministic: bool = True
+                ) -> tuple[np.ndarray, Any]:
+        obs, single = _batch(observation)
+        n, width = obs.shape[0], self._width()
+        L = (width - 4) // 2
+        st = np.zeros((n, width)) if state is None else np.array(state, dtype=float).reshape(
+            n, width)
+        if episode_start is not None:
+            st[np.broadcast_to(np.asarray(episode_start, dtype=bool).reshape(-1), (n,))] = 0.0
+        k = st[:, 2].astype(np.int64)
+        e = obs[:, OXR] - obs[:, OX]
+        r = np.zeros(n)
+        R, E = st[:, 3:3 + L], st[:, 3 + L:3 + 2 * L]  # views
+        for plan, rows in self._plan_rows(n):
+            d = self.design_of(plan)
+            i = np.arange(n)[rows]
+            q = len(d.taps) // 2
+            ring = d.period_steps + q + 1
+            back = k[i, None] - d.period_steps + np.arange(-q, q + 1)[None, :]
+            learned = d.gain * (E[i[:, None], (back + d.lead_steps) % ring] @ d.taps)
+            learned = np.where(self._winding(st[i], learned), 0.0, learned)
+            r[i] = R[i[:, None], back % ring] @ d.taps + learned
+            R[i, k[i] % ring] = r[i]
+            E[i, k[i] % ring] = e[i]
+        st[:, 2] += 1
+        pid = [0, 1, width - 1]
+        u, st[:, pid] = self._pid(obs, None if state is None else st[:, pid], episode_start,
+                                  self.kp_bar_per_m, self.ki_bar_per_m_s, self.kd_bar_s_per_m,
+                                  self.tf_s, r)
+        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
+        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
+        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
+        return (a[0] if single else a), st
+
+    def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
+                  rows: np.ndarray) -> np.ndarray:
+        """The state from which this controller continues the residual ``held`` (n, 2) on
+        ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the PID's as
+        ``PIDResidual.take_over`` (its integrator holds the antagonistic part of the command),
+        the delay line empty (no correction until it has a period to learn from)."""
+        n, width = len(rows), self._width()
+        st = np.zeros((n, width)) if state is None else np.array(state, dtype=float).reshape(
+            n, width)
+        pid = [0, 1, width - 1]
+        held_st = super().take_over(observation, held, st[:, pid], rows)
+        st[rows] = 0.0
+        st[np.ix_(rows, pid)] = held_st[rows]
+        return st
+
+
 @dataclass
 class StiffnessFeedback(_PlanPolicy):
     """Model-based, stiffness-preserving feedback (module docstring).
@@ -351,7 +558,7 @@ class StiffnessFeedback(_PlanPolicy):
 
 
 BASELINES = {"ff": "ZeroResidual", "pid": "PIDResidual", "mbfb": "StiffnessFeedback",
-             "afc": "AdaptiveFeedforward"}
+             "afc": "AdaptiveFeedforward", "rc": "RepetitiveControl"}
 
 # What each baseline's defaults were tuned on (``mpa-gym tune-baselines``; the report shows it).
 TUNED_ON = {
@@ -366,6 +573,14 @@ TUNED_ON = {
             "terminated plant counts 100 mm) over 32 plants drawn (seed 0) from the training "
             "ranges of configs/ppo_residual.yaml, every effect on in every draw, and their 32 "
             "undamped twins; 9.91 mm (the first trial's gains: 11.6 mm)",
+    "rc": "`mpa-gym tune-baselines --policy rc --n-trials 60 --n-plants 32 --episode-s 30`: "
+          "60 Optuna TPE trials (seed 0) of learn and delay_margin_s on pid's tuned loop, "
+          "minimising the mean position RMSE (last 3 of 10 periods: the memory learns period "
+          "by period; an unstable or terminated plant counts 100 mm) over 32 plants drawn "
+          "(seed 0) from the training ranges of configs/ppo_residual.yaml, every effect on in "
+          "every draw, and their 32 undamped twins; 0.278 mm (pid on the same 30 s episodes: "
+          "1.37 mm; the first trial, learn 0.5 and delay_margin_s 0.03: 27.3 mm, unstable on "
+          "heavy legs behind slow regulators)",
     "afc": f"nothing: its adaptation's time constant is {AdaptiveFeedforward.adapt_periods:g} "
            "reference periods (the nominal model's gain normalises it); the supervisor's last "
            "resort",
@@ -393,8 +608,10 @@ def stack(policies: list[Policy]) -> Policy:
 
 def make_baseline(name: str, scenario: Any = "nominal", stiffness: Any = None,
                   task: dict[str, Any] | TaskConfig | None = None,
-                  params: Params = DEFAULT_PARAMS) -> Policy:
-    """A baseline by name for an env made with the same (scenario, stiffness, task)."""
+                  params: Params = DEFAULT_PARAMS, gains: dict[str, float] | None = None
+                  ) -> Policy:
+    """A baseline by name for an env made with the same (scenario, stiffness, task);
+    ``gains``: its fields other than the defaults (``mpa_gym.agents.controllers.gains``)."""
     if name not in BASELINES:
         raise ValueError(f"policy={name!r} is not a baseline; choose one of {sorted(BASELINES)} "
                          "or a run folder")
@@ -402,4 +619,4 @@ def make_baseline(name: str, scenario: Any = "nominal", stiffness: Any = None,
         return ZeroResidual()
     cfg = task if isinstance(task, TaskConfig) else TaskConfig.from_kwargs(task)
     plan = make_plan(scenario, stiffness, cfg, params)
-    return globals()[BASELINES[name]](plan, params)
+    return globals()[BASELINES[name]](plan, params, **(gains or {}))

@@ -59,6 +59,7 @@ import numpy as np
 
 import mpa_gym.agents.controllers.baselines as baselines
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy
+from mpa_gym.agents.controllers.gains import load_gains
 from mpa_gym.model.params import check_keys, check_range
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
@@ -225,10 +226,14 @@ class SupervisorSpec:
 
     monitors: tuple[Monitor, ...] = DEFAULT_MONITORS  # one of each kind at most
     stages: tuple[Stage, ...] = DEFAULT_STAGES  # the policy, a fallback, a last resort
+    # the later stages' gains (mpa_gym.agents.controllers.gains): a gains file's path or its
+    # ``gains`` mapping inline, read once into the mapping; none: the baselines' defaults
+    gains: Any = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "monitors", tuple(self.monitors))
         object.__setattr__(self, "stages", tuple(self.stages))
+        object.__setattr__(self, "gains", load_gains(self.gains, "supervisor.gains"))
         names = tuple(m.name for m in self.monitors)
         for m in self.monitors:
             if type(m) is not MONITORS.get(m.name):
@@ -273,7 +278,7 @@ class SupervisorSpec:
         folders written before (``from_flat``). Unknown keys are refused by name."""
         if isinstance(value, cls):
             return value
-        declared = ["monitors", "stages"]
+        declared = ["monitors", "stages", "gains"]
         if not isinstance(value, dict):
             raise ValueError(f"supervisor={value!r} must be a mapping with keys {declared} "
                              f"(or the flat form's {list(FLAT_KEYS)})")
@@ -285,7 +290,8 @@ class SupervisorSpec:
         used = {m for s in stages for m in s.monitors}
         monitors = _monitors(value.get("monitors"))
         # the monitors the stages use (if they name none known, all: the error lists them)
-        return cls(tuple(m for m in monitors if m.name in used) or monitors, stages)
+        return cls(tuple(m for m in monitors if m.name in used) or monitors, stages,
+                   value.get("gains"))
 
     @classmethod
     def from_flat(cls, value: dict[str, Any]) -> SupervisorSpec:

@@ -47,6 +47,7 @@ import gymnasium as gym
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
+from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import (
     HAND_OVERS,
     Supervised,
@@ -75,7 +76,14 @@ from mpa_gym.agents.evaluation.seeds import (
     require_stats,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
-from mpa_gym.agents.learned.policies import load_policy, run_of, spec_label, with_alone
+from mpa_gym.agents.learned.policies import (
+    builds_per_scenario,
+    is_user_spec,
+    load_policy,
+    run_of,
+    spec_label,
+    with_alone,
+)
 from mpa_gym.agents.learned.runs import read_eval_history
 from mpa_gym.agents.worker import Worker, WorkerStopped
 from mpa_gym.analysis.scenario import load_scenario
@@ -91,7 +99,8 @@ HELDOUT_SCENARIOS = ["heldout_a", "heldout_b", "heldout_c", "heldout_bladder"]
 
 def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
              robustness: bool = False, batched: bool = True,
-             plots_dir: str | Path | None = None) -> dict[str, Any]:
+             plots_dir: str | Path | None = None, gains: Gains | None = None
+             ) -> dict[str, Any]:
     """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
     the robustness sweep if ``robustness``.
 
@@ -100,18 +109,22 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers. ``plots_dir``: the
     scenario plots (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
     :func:`write_report` after it (``report["plots"]``). A supervised run folder is evaluated
-    also alone (module docstring)."""
+    also alone (module docstring). ``gains``: the baselines' gains (``load_gains``'s) where
+    not their defaults. Your own controllers (``module:Class``) are built per scenario like
+    the baselines, and stacked into one batch when their class allows it
+    (``baselines.stack``), else run as one controller per scenario."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     policies = with_alone(policies)
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
         require_stats()
-    learned = {spec: load_policy(spec) for spec in policies if spec not in BASELINES}
+    learned = {spec: load_policy(spec) for spec in policies if not builds_per_scenario(spec)}
     # a baseline is built for its scenario's plan; batched, one stack of them per baseline
-    own = {spec: [load_policy(spec, {"scenario": sc})[0] for sc in loaded]
-           for spec in policies if spec in BASELINES}
-    stacked = {spec: stack(ps) for spec, ps in own.items()} if batched else {}
-    swept = sweep_in_background(policies, seed=seed) if robustness else None
+    own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains)[0] for sc in loaded]
+           for spec in policies if builds_per_scenario(spec)}
+    stacked = {spec: st for spec, ps in own.items() if (st := _stacked(ps)) is not None} \
+        if batched else {}
+    swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
     try:
         report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
                                   batched)
@@ -127,11 +140,22 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
             swept.cancel()
             raise
     if robustness:
-        report["robustness"] = swept.result() if swept else sweep(policies, seed=seed)
+        report["robustness"] = (swept.result() if swept
+                                else sweep(policies, seed=seed, gains=gains))
+    report["controllers"] = {spec_label(p): tuned_on(p, gains) for p in policies}
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [spec_label(p) for p in policies if p not in BASELINES])
     return report
+
+
+def _stacked(policies: list[Policy]) -> Policy | None:
+    """One controller for the scenarios' rows (``baselines.stack``), or None where the class
+    cannot be stacked (your own, not a baseline's kind): then each scenario's runs its rows."""
+    try:
+        return stack(policies)
+    except (ValueError, TypeError):
+        return None
 
 
 def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, Any],
@@ -165,7 +189,6 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
         traces.setdefault(sc.name, {})[label] = tr
     return {"results": results, "traces": traces, "seed": seed,
             "learning": learning_speed(policies, results),
-            "controllers": {spec_label(p): tuned_on(p) for p in policies},
             "supervisors": {spec_label(p): cfg.supervisor.describe()
                             for p, (pol, _, cfg) in learned.items()
                             if isinstance(pol, Supervised)},
@@ -252,11 +275,17 @@ def learning_speed(policies: list[str], results: dict[str, Any], scenario: str =
     return out
 
 
-def tuned_on(spec: str) -> str:
-    """What a controller was tuned or trained on, for the report."""
+def tuned_on(spec: str, gains: Gains | None = None) -> str:
+    """What a controller was tuned or trained on, for the report (``gains``: the gains it ran
+    with instead of its defaults)."""
 
+    if spec in (gains or {}):
+        return ("gains " + ", ".join(f"{k} = {v:.4g}" for k, v in gains[spec].items())
+                + " (given with --gains); defaults: " + TUNED_ON[spec])
     if spec in TUNED_ON:
         return TUNED_ON[spec]
+    if is_user_spec(spec):
+        return f"your own controller ({spec})"
     run, supervised = run_of(spec)
     if run is not None:
         policy, _, cfg = load_policy(str(run), supervised=False)
@@ -297,7 +326,7 @@ def markdown(report: dict[str, Any]) -> str:
                    "(rliable); recovery is their median. " + "; ".join(
                        f"{g}: {len(v['runs'])} runs ({', '.join(v['runs'])})"
                        for g, v in groups.items()) + ".")
-    if any(Path(c).name == c and c not in BASELINES for c in ctrls):
+    if any(Path(c).name == c and not builds_per_scenario(c) for c in ctrls):
         out.append("A learned policy given as a single run has no interval (n = 1): train "
                    "several seeds (`mpa-gym train --seeds 0 1 2 3 4`) and pass all the runs.")
     if report.get("supervisors"):

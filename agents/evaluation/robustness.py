@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
+from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import who_drove
 from mpa_gym.agents.evaluation.episodes import (
     Job,
@@ -111,7 +112,7 @@ KICKS: dict[str, dict[str, float]] = {"load_1.6kg": {"extra_mass_kg": 1.6}}
 
 HARM_RATIO = 1.5  # a learned residual may be this much worse than the best feedback baseline
 HARM_FLOOR_MM = 0.05  # [mm] an RMSE below this is no harm (sensor noise is 0.02 mm)
-FEEDBACK_BASELINES = ("pid", "mbfb")
+FEEDBACK_BASELINES = ("pid", "mbfb", "rc")
 
 
 def _scenario(base: Scenario, name: str, rig: dict[str, float],
@@ -120,18 +121,19 @@ def _scenario(base: Scenario, name: str, rig: dict[str, float],
                                randomize=Randomization())
 
 
-def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], seed: int
-              ) -> dict[str, np.ndarray]:
+def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], seed: int,
+              gains: Gains | None = None) -> dict[str, np.ndarray]:
     """One episode of controller ``spec`` (a name, a run folder, or a policy object for
     ``MPALegResidual-v0``) on a batch with one leg per plant: per leg the time, X and X̂ after
     each step until the episode ends (NaN after a termination), whether it terminated, its
     number of steps (``steps``), and per step the supervisor's stage that drove it
-    (``fallback``, ``mpa_gym.agents.controllers.supervisor``; 0, the policy, without one)."""
-    return run_batches([spec], sc, plants, seed)[0]
+    (``fallback``, ``mpa_gym.agents.controllers.supervisor``; 0, the policy, without one).
+    ``gains``: the baselines' gains where not their defaults (``load_gains``'s)."""
+    return run_batches([spec], sc, plants, seed, gains)[0]
 
 
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
-                seed: int) -> list[dict[str, np.ndarray]]:
+                seed: int, gains: Gains | None = None) -> list[dict[str, np.ndarray]]:
     """:func:`run_batch` for several controllers at once, each on every plant, as one call of
     ``mpa_gym.agents.evaluation.episodes.run_episodes``: controllers that run in the same env (id
     and task settings) share one vector env, a block of legs each, so a step of the sweep is one
@@ -140,7 +142,7 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
     jobs = []
     for spec in specs:
         if isinstance(spec, str):
-            policy, env_id, run_cfg = load_policy(spec, {"scenario": sc})
+            policy, env_id, run_cfg = load_policy(spec, {"scenario": sc}, gains=gains)
         else:
             policy, env_id, run_cfg = spec, "MPALegResidual-v0", None
         task = eval_task(run_cfg)
@@ -216,10 +218,12 @@ def held_out(plant: dict[str, float], ranges: dict[str, tuple[float, float]] | N
 def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_SEED,
                grids: tuple[Grid, ...] | None = None,
                levels: dict[str, dict[str, float]] | None = None, kick: Impulse | None = None,
-               kicks: dict[str, dict[str, float]] | None = None) -> dict[str, Any]:
+               kicks: dict[str, dict[str, float]] | None = None, gains: Gains | None = None
+               ) -> dict[str, Any]:
     """The sweep: ``{"grids": {name: {...}}, "levels": {...}, "kicks": {...}}`` (module
     docstring); by default ``GRIDS``, ``LEVELS``, ``KICKS`` and ``LEVEL_KICK`` on the nominal
-    scenario. A supervised run folder is swept also alone (``with_alone``)."""
+    scenario. A supervised run folder is swept also alone (``with_alone``); the baselines run
+    with ``gains`` where given (``load_gains``'s)."""
     policies = with_alone(policies)
     grids = GRIDS if grids is None else grids
     levels = LEVELS if levels is None else levels
@@ -239,7 +243,7 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
             "rows": {"field": g.row_field, "values": list(g.row_values)},
             "cols": {"field": g.col_field, "values": list(g.col_values)},
             "base": g.base, "rig": g.rig, "controllers": {}}
-        for p, run in zip(policies, run_batches(policies, sc, cells, seed), strict=True):
+        for p, run in zip(policies, run_batches(policies, sc, cells, seed, gains), strict=True):
             m = cell_metrics(run, period, float(run["t"][0]))
             for cell, plant in zip(m, cells, strict=True):
                 cell["held_out"] = held_out(plant, ranges[p])
@@ -256,7 +260,8 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
         names = list(plants_by_name)
         plants = [plants_by_name[n] for n in names]
         out[f"{key}_plants"] = {n: {**plants_by_name[n], **rig} for n in names}
-        for p, run in zip(policies, run_batches(policies, sc, plants, seed), strict=True):
+        for p, run in zip(policies, run_batches(policies, sc, plants, seed, gains),
+                          strict=True):
             m = cell_metrics(run, period, float(run["t"][0]))
             for i, n in enumerate(names):
                 m[i]["recovery_s"] = (None if run["terminated"][i] else recovery_s(

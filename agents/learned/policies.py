@@ -1,5 +1,7 @@
 """Learned policies behind the same ``predict`` interface as the baselines, and loading any
-controller by name (``ff``, ``pid``, ``mbfb``) or run folder.
+controller by name (``ff``, ``pid``, ``mbfb``, ``afc``, ``rc``), run folder or, for your own
+controller, ``module:Class`` (:func:`user_controller`; the interface is in docs/design.md,
+"Your own controller").
 
 A run folder whose config has a ``supervisor`` loads under it (the supervised system: what runs
 on the rig). ``RUN_DIR:alone`` (:data:`ALONE`; ``load_policy(..., supervised=False)`` in code)
@@ -13,7 +15,9 @@ from __future__ import annotations
 
 import copy
 import functools
+import importlib
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +25,7 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.excite import ExcitePolicy
+from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.learned.config import TrainConfig, load_config
 from mpa_gym.agents.learned.episodic import Episodic, ObservationCheck
@@ -29,6 +34,7 @@ from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.runs import legacy_objects
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
+from mpa_gym.model.params import DEFAULT_PARAMS
 from mpa_gym.task.config import TaskConfig
 from mpa_gym.task.contract import obs_names
 from mpa_gym.task.plan import make_plan
@@ -38,6 +44,7 @@ ALONE_LABEL = " (alone)"  # what reports append to the run's name for it
 # a run folder's models (``which``): the model file and its normaliser's
 RUN_MODELS = {"final": ("model.zip", "vecnormalize.pkl"),
               "best": ("best/best_model.zip", "best/vecnormalize.pkl")}
+USER_SPEC = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*")  # module:Class, your own controller
 
 
 def run_of(spec: str) -> tuple[Path | None, bool]:
@@ -80,6 +87,58 @@ def with_alone(specs: list[str]) -> list[str]:
         if has_supervisor(spec) and spec + ALONE not in specs:
             out.append(spec + ALONE)
     return out
+
+
+def is_user_spec(spec: str) -> bool:
+    """Whether ``spec`` names your own controller class, ``module:Class`` (not a baseline, not
+    a run folder nor ``RUN_DIR:alone``)."""
+    return (spec not in BASELINES and run_of(spec)[0] is None
+            and USER_SPEC.fullmatch(spec) is not None)
+
+
+def builds_per_scenario(spec: str) -> bool:
+    """Whether ``spec``'s controller is built for each scenario's plan (a baseline, your own
+    class) rather than loaded once (a run folder)."""
+    return spec in BASELINES or is_user_spec(spec)
+
+
+def user_controller(spec: str, flag: str = "--policy") -> type:
+    """The class of ``module:Class``, imported; a ValueError naming ``flag`` and the value if
+    the module cannot be imported, has no such class, or the class has no ``predict``."""
+    module, _, name = spec.partition(":")
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name is not None and module.startswith(e.name):
+            raise ValueError(f"{flag} {spec!r}: no module named {e.name!r} (a controller given "
+                             "as module:Class must be importable: installed, or its folder on "
+                             "PYTHONPATH)") from None
+        raise ValueError(f"{flag} {spec!r}: importing {module!r} failed: {e}") from None
+    except Exception as e:  # the module's own code failed: the user's to fix
+        raise ValueError(f"{flag} {spec!r}: importing {module!r} failed: "
+                         f"{type(e).__name__}: {e}") from None
+    cls = getattr(mod, name, None)
+    if cls is None:
+        raise ValueError(f"{flag} {spec!r}: module {module!r} has no {name!r}")
+    if not isinstance(cls, type) or not callable(getattr(cls, "predict", None)):
+        raise ValueError(f"{flag} {spec!r}: {name} is not a controller class (it needs "
+                         "predict(observation, state, episode_start, deterministic); "
+                         "docs/design.md, \"Your own controller\")")
+    return cls
+
+
+def make_user_controller(spec: str, scenario: Any = "nominal", stiffness: Any = None,
+                         task: dict[str, Any] | None = None, flag: str = "--policy") -> Policy:
+    """Your controller ``module:Class`` built as ``Class(plan, params)`` for an env made with
+    (scenario, stiffness, task): ``plan`` its ``mpa_gym.task.plan.TaskPlan`` (the reference,
+    the nominal feedforward, ``plan.cfg`` the task settings), ``params`` the nominal model."""
+    cls = user_controller(spec, flag)
+    plan = make_plan(scenario, stiffness, TaskConfig.from_kwargs(task))
+    try:
+        return cls(plan, DEFAULT_PARAMS)
+    except Exception as e:  # its constructor failed: say so as the user's error
+        raise ValueError(f"{flag} {spec!r}: {cls.__name__}(plan, params) failed: "
+                         f"{type(e).__name__}: {e}") from None
 
 
 class LearnedPolicy(Episodic):
@@ -317,8 +376,7 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     """``policy`` under the run-time assurance of its config's ``supervisor``
     (``mpa_gym.agents.controllers.supervisor``): the fallback baseline is built for the env of
     ``env_kwargs`` (scenario, stiffness; task settings over the run's own), else for the run's
-    training env."""
-
+    training env, with the section's ``gains`` if it has them."""
 
     own, given = cfg.env_kwargs, env_kwargs or {}
     task = {**(own.get("task") or {}), **(given.get("task") or {})}
@@ -326,7 +384,9 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     # a run trained on several designs (a list) has none of its own to give the fallback
     stiffness = given.get("stiffness", None if isinstance(own.get("stiffness"), list)
                           else own.get("stiffness"))
-    fallback, last = (None if name is None else make_baseline(name, scenario, stiffness, task)
+    fallback, last = (None if name is None else
+                      make_baseline(name, scenario, stiffness, task,
+                                    gains=cfg.supervisor.gains.get(name))
                       for name in (cfg.supervisor.fallback, cfg.supervisor.last_resort))
     return SupervisedPolicy(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
                             load_scenario(scenario).reference.period, cfg.supervisor, last)
@@ -347,7 +407,8 @@ class SupervisedPolicy(Episodic, Supervised):
 
 
 def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
-                deployed: bool = False, supervised: bool = True, which: str = "final"
+                deployed: bool = False, supervised: bool = True, which: str = "final",
+                gains: Gains | None = None, flag: str = "--policy"
                 ) -> tuple[Policy, str, Any]:
     """Load a controller: a trained run folder (with or without its supervisor) or a built-in
     one, ready to act on the observations of the env it names.
@@ -356,8 +417,9 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
     ----------
     spec : str or path
         A run folder (what ``mpa-gym train`` writes), the same folder + ``:alone``
-        (:data:`ALONE`, as ``supervised=False``), a baseline (``ff``, ``pid``, ``mbfb``,
-        ``afc``) or ``excite`` (the identification excitation).
+        (:data:`ALONE`, as ``supervised=False``), a baseline (``BASELINES``: ``ff``, ``pid``,
+        ``mbfb``, ``afc``, ``rc``), ``excite`` (the identification excitation) or your own
+        controller ``module:Class`` (:func:`make_user_controller`).
     env_kwargs : dict, optional
         The keyword arguments of the env the controller will run in (``scenario``,
         ``stiffness``, ``task``). Baselines, excitation and a supervisor's fallback are built
@@ -373,6 +435,10 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
         ``evaluate`` and ``rollout`` run), if it has one; False: the learned policy alone.
     which : {"final", "best"}
         A run's ``model.zip`` or ``best/best_model.zip`` (the best held-out evaluation).
+    gains : Gains, optional
+        A baseline's gains (``load_gains``: a gains file of ``mpa-gym tune-baselines --out``).
+    flag : str
+        The command-line flag that gave ``spec``, named in errors.
 
     Returns
     -------
@@ -413,7 +479,12 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
     if spec in BASELINES:
         kw = env_kwargs or {}
         return (make_baseline(spec, kw.get("scenario", "nominal"), kw.get("stiffness"),
-                              kw.get("task")), "MPALegResidual-v0", None)
+                              kw.get("task"), gains=(gains or {}).get(spec)),
+                "MPALegResidual-v0", None)
+    if is_user_spec(spec):
+        kw = env_kwargs or {}
+        return (make_user_controller(spec, kw.get("scenario", "nominal"), kw.get("stiffness"),
+                                     kw.get("task"), flag), "MPALegResidual-v0", None)
     run, as_given = run_of(spec)
     if run is not None:
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
@@ -426,5 +497,6 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
         if cfg.supervisor is not None and supervised and as_given:
             policy = supervise(policy, cfg, env_kwargs)
         return policy, cfg.env_id, cfg
-    raise ValueError(f"policy={spec!r} is neither a baseline {sorted(BASELINES)} nor a run "
-                     f"folder (or a run folder + {ALONE!r}: its policy without its supervisor)")
+    raise ValueError(f"{flag} {spec!r} is neither a baseline {sorted(BASELINES)}, a run "
+                     f"folder (or a run folder + {ALONE!r}: its policy without its supervisor) "
+                     "nor your own controller module:Class")

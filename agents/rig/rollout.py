@@ -34,6 +34,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import (
     FALLBACK,
     POLICY,
@@ -145,9 +146,11 @@ def stop_reason(exc: BaseException, vented: bool = True) -> str:
 
 def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int = 1,
             scenario: Any = "nominal", control_hz: float = CONTROL_HZ,
-            episode_s: float | None = None, seed: int = 0, realtime: bool = False
-            ) -> dict[str, Any]:
-    """Run ``episodes`` of ``policy_spec`` on ``device``; returns metrics and timing, and
+            episode_s: float | None = None, seed: int = 0, realtime: bool = False,
+            gains: Gains | None = None, flag: str = "--policy") -> dict[str, Any]:
+    """Run ``episodes`` of ``policy_spec`` (a baseline with its entry of ``gains``, a run
+    folder, your own ``module:Class``; ``flag`` names it in errors) on ``device``; returns
+    metrics and timing, and
     ``stopped`` (the reason) if the env's safety layer ended an episode early. For a supervised
     run, ``stages`` names its supervisor's controllers and each episode's metrics say who drove
     (``policy_share``, ``fallback_s``, ``last_resort_s`` and ``hand_overs``, the same in words:
@@ -166,7 +169,8 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
     # refused at a rate other than its training one (load_policy), before the rig is touched
     policy, env_id, run_cfg = load_policy(policy_spec, {"scenario": scenario,
                                                         "task": {"dt_s": 1.0 / control_hz}},
-                                          deployed=True)  # a run: its compiled action path
+                                          deployed=True,  # a run: its compiled action path
+                                          gains=gains, flag=flag)
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
@@ -306,8 +310,8 @@ def wait_floor(control_hz: float, duration_s: float, spin_s: float = SPIN_S
 
 
 def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 10.0,
-                   repeats: int = 3, rig: Any = "nominal", scenario: Any = "nominal"
-                   ) -> dict[str, Any]:
+                   repeats: int = 3, rig: Any = "nominal", scenario: Any = "nominal",
+                   gains: Gains | None = None) -> dict[str, Any]:
     """The rig loop's timing (``mpa-gym bench --loop``): ``repeats`` pairs, each the machine's
     floor (``wait_floor``) then a ``loop_s`` rollout of ``policy_spec`` at ``control_hz``
     against a device emulator in another process playing ``rig``, side by side so that both
@@ -320,13 +324,17 @@ def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 
     check_range("--loop-s", loop_s, 1.0, 600.0, unit="s")
     if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:
         raise ValueError(f"--repeats={repeats!r} must be a whole number in [1, 100]")
+    # the controller is checked (built once) before the first measurement
+    load_policy(policy_spec, {"scenario": scenario, "task": {"dt_s": 1.0 / control_hz}},
+                gains=gains, flag="--loop")
     pairs = []
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(repeats):
             floor = wait_floor(control_hz, loop_s)
             with EmulatorProcess(rig) as emu:
                 out = rollout(policy_spec, emu.url, Path(tmp) / f"loop{i}.jsonl",
-                              scenario=scenario, control_hz=control_hz, episode_s=loop_s)
+                              scenario=scenario, control_hz=control_hz, episode_s=loop_s,
+                              gains=gains, flag="--loop")
             t = out["timing"]
             pairs.append({"floor": floor, "loop": {
                 "steps": t["steps"], "overrun_pct": 100.0 * t["overruns"] / max(1, t["steps"]),

@@ -21,22 +21,28 @@ worst-case objective tunes for that one plant only. The search space of each con
 ``SPACES``; the budget is ``n_trials`` Optuna trials with a seeded TPE sampler, so a run is
 reproducible.
 
-``mpa-gym tune-baselines`` runs it and prints the gains and what they were tuned on; the
-defaults of ``PIDResidual`` / ``StiffnessFeedback`` and ``baselines.TUNED_ON`` come from it.
+``mpa-gym tune-baselines`` runs it and prints the gains and what they were tuned on, and with
+``--out FILE`` writes them as a gains file (:func:`write_gains`) that ``evaluate``, ``rollout``,
+``bench --loop`` (``--gains FILE``) and a run config's ``supervisor.gains`` read; the defaults
+of ``PIDResidual`` / ``StiffnessFeedback`` / ``RepetitiveControl`` and ``baselines.TUNED_ON``
+come from it.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mpa_gym.agents.controllers.baselines import make_baseline
+from mpa_gym.agents.controllers.gains import gains_yaml
 from mpa_gym.agents.evaluation.robustness import cell_metrics, run_batch
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG, load_config
 from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
+from mpa_gym.files import atomic_write_text
 
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
 # The undamped twin of a plant (module docstring): field -> "low" (the low end of its range) or
@@ -52,6 +58,9 @@ SPACES: dict[str, dict[str, tuple[float, float, bool]]] = {
             "kd_bar_s_per_m": (0.1, 40.0, True), "tf_s": (0.0, 0.05, False)},
     "mbfb": {"kp_N_per_m": (100.0, 1e4, True), "ki_N_per_m_s": (10.0, 1e4, True),
              "kd_N_s_per_m": (5.0, 400.0, True), "tf_s": (0.0, 0.05, False)},
+    # the repetitive memory on pid's tuned loop: its learning gain and the dead time its
+    # filter is designed to tolerate (baselines.repetitive_design)
+    "rc": {"learn": (0.02, 1.5, True), "delay_margin_s": (0.0, 0.15, False)},
 }
 
 
@@ -128,7 +137,11 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
     def objective(trial: optuna.Trial) -> float:
         gains = {k: trial.suggest_float(k, lo, hi, log=log) for k, (lo, hi, log) in
                  space.items()}
-        return score(name, gains, sc, plants, seed)
+        try:
+            return score(name, gains, sc, plants, seed)
+        except ValueError as e:  # gains the controller's design refuses (rc: no filter)
+            trial.set_user_attr("refused", str(e))
+            return FAILED_MM
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(direction="minimize",
@@ -147,3 +160,24 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
                          "objective": "mean position RMSE over the plants, last 3 periods "
                                       f"(unstable or terminated: {FAILED_MM:g} mm)",
                          "budget": f"{n_trials} Optuna TPE trials (seed {seed})"}}
+
+
+def write_gains(results: list[dict[str, Any]] | None, path: str | Path) -> Path:
+    """Write :func:`tune`'s ``results`` as a gains file at ``path``
+    (``mpa_gym.agents.controllers.gains``: each controller's gains, and under ``tuned_on`` what
+    they were tuned on and their score). With ``results`` None, only check that ``path`` can
+    be written (``--out``, before any trial)."""
+    p = Path(path)
+    if results is None:
+        if p.is_dir():
+            raise ValueError(f"--out {str(path)!r} is a folder; give a file name (FILE.yaml)")
+        if not p.parent.is_dir():
+            raise ValueError(f"--out {str(path)!r}: folder {str(p.parent)!r} does not exist")
+        if not os.access(p.parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+            raise ValueError(f"--out {str(path)!r} is not writable")
+        return p
+    atomic_write_text(p, gains_yaml(
+        {r["policy"]: r["gains"] for r in results},
+        {r["policy"]: {**r["tuned_on"], "mean_position_rmse_mm": r["mean_position_rmse_mm"]}
+         for r in results}))
+    return p
