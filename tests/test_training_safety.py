@@ -430,7 +430,7 @@ def test_a_run_shorter_than_eval_freq_ends_with_a_held_out_evaluation(tmp_path, 
     last = json.loads(capsys.readouterr().out)["last_evaluation"]
     steps = zip_timesteps(run / "model.zip")
     assert steps >= 256 and last["timesteps"] == steps
-    hist, ts, res, _ = read_eval_history(run / "eval")
+    hist, ts, _, _ = read_eval_history(run / "eval")
     assert ts == [0, steps] and [h["timesteps"] for h in hist] == ts and hist[-1] == last
     events = EventAccumulator(str(next((run / "tb").glob("PPO_*")))).Reload()
     logged = events.Scalars("eval/ev/position_rmse_mm")
