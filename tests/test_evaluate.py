@@ -193,3 +193,75 @@ def test_the_evaluate_summary_prints_the_hand_overs(runs, tmp_path, capsys):
     # the table's supervised cell is marked, the policy alone's is not
     table = next(ln for ln in text.splitlines() if ln.split()[:1] == ["trip"])
     assert table.count("‡") == 1
+
+
+def test_the_summary_gives_the_best_per_scenario_group_and_who_drove(runs, monkeypatch):
+    """The summary's figures recomputed from the report's own per-scenario rows: one
+    controller's mean over a group's scenarios, a group of two runs' IQM (of two values, their
+    mean) with its interval around it, the fallback's episodes counted, the best the lowest
+    mean of the rows that never terminated. (500 bootstrap samples: what is checked of the
+    interval holds for any number.)"""
+    from mpa_gym.agents.evaluation import seeds
+    from mpa_gym.agents.evaluation.evaluate import summary
+
+    monkeypatch.setattr(seeds, "BOOTSTRAP_REPS", 500)
+
+    # heldout_a's plant, shortened: a scenario of the held-out group (grouped by name)
+    held = {**yaml.safe_load(open("configs/scenarios/heldout_a.yaml")), "duration_s": 2.0,
+            "reference": TRIP["reference"]}
+    rep = evaluate([*runs, "ff", "pid"], [TRIP, held])
+    res, summ = rep["results"], rep["summary"]["groups"]
+    assert list(summ) == ["held_out", "other"]
+    assert summ["other"]["scenarios"] == ["trip"] and summ["held_out"]["scenarios"] == ["heldout_a"]
+    g = summ["other"]["controllers"]
+    assert set(g) == {"w", "w (alone)", "ff", "pid"}  # the seeds' rows are their group's
+    assert g["ff"]["position_rmse_mm"] == res["trip"]["ff"]["position_rmse_mm"]
+    assert g["ff"]["kind"] == "baseline" and g["w (alone)"]["kind"] == "alone"
+    both = [res["trip"][r]["position_rmse_mm"] for r in ("w-s0", "w-s1")]
+    w = g["w"]
+    assert w["kind"] == "supervised" and w["n_runs"] == 2
+    np.testing.assert_allclose(w["position_rmse_mm"], np.mean(both), rtol=1e-12)
+    lo, hi = w["position_rmse_mm_ci"]
+    assert min(both) - 1e-12 <= lo <= w["position_rmse_mm"] <= hi <= max(both) + 1e-12
+    # the hair trigger hands both runs to pid on trip; the policy alone has no fallback
+    assert w["fallback_episodes"] == 2 and g["w (alone)"]["fallback_episodes"] == 0
+    np.testing.assert_allclose(w["policy_share"], np.mean(
+        [res["trip"][r]["policy_share"] for r in ("w-s0", "w-s1")]), rtol=1e-12)
+    for grp in summ.values():
+        ok = {r: e["position_rmse_mm"] for r, e in grp["controllers"].items()
+              if not e["terminated"]}
+        assert grp["best"] == min(ok, key=ok.get)
+
+    # a supervised row that a fallback drove is never named best without its mark, and the
+    # policy alone's figure stands beside it (the rows' figures set by hand to make it best)
+    crafted = {"results": {"trip": {
+        "r": {**res["trip"]["w-s0"], "position_rmse_mm": 0.01},
+        "r (alone)": {**res["trip"]["w-s0 (alone)"], "position_rmse_mm": 5.0},
+        "pid": {**res["trip"]["pid"], "position_rmse_mm": 1.0}}},
+        "kinds": {"r": "supervised", "r (alone)": "alone", "pid": "baseline"}, "groups": {}}
+    crafted["summary"] = summary(crafted)
+    md = markdown({**crafted, "seed": 0})
+    first = md.split("## Summary\n")[1].split("\n\n| controller")[0]  # the best per group
+    best_row = _table(f"## Summary\n{first}", "Summary")["other scenarios (1)"]
+    assert best_row["best"] == "**r ‡**"
+    assert "a fallback took over in 1 of 1 episodes" in best_row["who drove"]
+    assert "the policy alone, r (alone): 5.000 mm" in best_row["who drove"]
+
+
+def test_evaluate_json_and_table_carry_the_summary(runs, tmp_path, capsys):
+    scen = tmp_path / "trip.yaml"
+    scen.write_text(yaml.safe_dump(TRIP))
+    args = ["evaluate", "--policy", runs[0], "pid", "--scenarios", str(scen), "--no-robustness",
+            "--out", str(tmp_path / "rep")]
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    on_disk = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert out["summary"] == on_disk["summary"]
+    best = out["summary"]["groups"]["other"]["best"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    mark = " ‡" if out["summary"]["groups"]["other"]["controllers"][best]["fallback_episodes"] \
+        else ""
+    assert f"best on other scenarios: {best}{mark}, " in text
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert md.index("## Summary") < md.index("## position RMSE [mm]")

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
+import numpy as np
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
@@ -70,12 +71,19 @@ from mpa_gym.agents.evaluation.seeds import (
     aggregate,
     group_label,
     group_runs,
+    iqm_ci,
     learning_curves,
     plot_curves,
     require_stats,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
-from mpa_gym.agents.learned.policies import load_policy, run_of, spec_label, with_alone
+from mpa_gym.agents.learned.policies import (
+    ALONE_LABEL,
+    load_policy,
+    run_of,
+    spec_label,
+    with_alone,
+)
 from mpa_gym.agents.learned.runs import read_eval_history
 from mpa_gym.agents.worker import Worker, WorkerStopped
 from mpa_gym.analysis.scenario import load_scenario
@@ -131,6 +139,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [spec_label(p) for p in policies if p not in BASELINES])
+    report["summary"] = summary(report)
     return report
 
 
@@ -171,6 +180,7 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
                             if isinstance(pol, Supervised)},
             "stages": {spec_label(p): [s.controller for s in cfg.supervisor.stages]
                        for p, (pol, _, cfg) in learned.items() if isinstance(pol, Supervised)},
+            "kinds": {spec_label(p): controller_kind(p, learned) for p in policies},
             "groups": seed_groups(groups, results)}
 
 
@@ -226,6 +236,170 @@ def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, A
                                   "results": aggregate(results, runs),
                                   "curves": learning_curves(runs)}
     return out
+
+
+# What drove a report row (``report["kinds"]``): a classical baseline, a run folder under its
+# supervisor, the same run's policy without it (``RUN_DIR:alone``), a run without a supervisor
+KINDS = {"baseline": "baseline", "supervised": "supervised (policy + fallback)",
+         "alone": "the policy alone", "policy": "the policy (no supervisor)"}
+
+
+def controller_kind(spec: str, learned: dict[str, Any]) -> str:
+    """``spec``'s key of :data:`KINDS` (``learned``: the loaded run folders, spec → (policy, env
+    id, config))."""
+    if spec in BASELINES:
+        return "baseline"
+    run, supervised = run_of(spec)
+    if run is not None and not supervised:
+        return "alone"
+    if spec in learned and isinstance(learned[spec][0], Supervised):
+        return "supervised"
+    return "policy"
+
+
+# The report's scenario groups, each summarised by its best controller: the paper's scenarios
+# and the held-out plants; any other scenario evaluated falls in OTHER_GROUP.
+SCENARIO_GROUPS = {"paper": ("the paper's scenarios", PAPER_SCENARIOS),
+                   "held_out": ("held-out plants", HELDOUT_SCENARIOS)}
+OTHER_GROUP = ("other", "other scenarios")
+SUMMARY_METRICS = ("position_rmse_mm", "stiffness_rmse_pct")
+
+
+def scenario_groups(names: list[str]) -> dict[str, dict[str, Any]]:
+    """The groups of :data:`SCENARIO_GROUPS` (then :data:`OTHER_GROUP`) among the scenario
+    ``names`` of a report: ``{key: {"title": ..., "scenarios": [...]}}``, empty groups left
+    out."""
+    out = {key: {"title": title, "scenarios": [n for n in names if n in members]}
+           for key, (title, members) in SCENARIO_GROUPS.items()}
+    grouped = {n for _, members in SCENARIO_GROUPS.values() for n in members}
+    out[OTHER_GROUP[0]] = {"title": OTHER_GROUP[1],
+                           "scenarios": [n for n in names if n not in grouped]}
+    return {k: v for k, v in out.items() if v["scenarios"]}
+
+
+def summary(report: dict[str, Any]) -> dict[str, Any]:
+    """The report's summary: per scenario group (:func:`scenario_groups`) and controller the mean
+    of each of ``SUMMARY_METRICS`` over the group's scenarios, and the best controller (lowest
+    mean position RMSE among those whose episodes all ran to the end).
+
+    Several runs of one config (``report["groups"]``) are one row: each run's mean over the
+    group's scenarios, then their interquartile mean and its 95 % stratified-bootstrap CI
+    (``<metric>_ci``; rliable, :func:`mpa_gym.agents.evaluation.seeds.iqm_ci`). Each row says
+    who drove: its kind (:data:`KINDS`), in how many of its episodes a supervisor's fallback
+    took over (``fallback_episodes``) and the share of steps the learned policy drove."""
+    res = report["results"]
+    seed = report.get("groups") or {}
+    kinds = report.get("kinds") or {}
+    in_group = {r for g in seed.values() for r in g["runs"]}
+    rows = {c: [c] for c in next(iter(res.values())) if c not in in_group}
+    rows.update({g: v["runs"] for g, v in seed.items()})
+    sgroups = scenario_groups(list(res))
+    columns = [(key, metric) for key in sgroups for metric in SUMMARY_METRICS]
+    out: dict[str, Any] = {key: {**grp, "controllers": {}} for key, grp in sgroups.items()}
+    for row, labels in rows.items():
+        # each run's mean over each group's scenarios, for every (group, metric): runs × columns
+        means = np.array([[np.mean([res[sc][lab][metric] for sc in sgroups[key]["scenarios"]])
+                           for key, metric in columns] for lab in labels])
+        if len(labels) > 1:  # one bootstrap for all the row's columns
+            point, ci = iqm_ci(means)
+        for key, grp in sgroups.items():
+            per = [res[sc][lab] for lab in labels for sc in grp["scenarios"]]
+            entry: dict[str, Any] = {
+                "kind": kinds.get(labels[0], "policy"), "n_runs": len(labels),
+                "episodes": len(per), "terminated": sum(bool(m["terminated"]) for m in per),
+                "fallback_episodes": sum(m.get("fallback_s") is not None for m in per),
+                "policy_share": float(np.mean([m.get("policy_share", 1.0) for m in per]))}
+            for metric in SUMMARY_METRICS:
+                j = columns.index((key, metric))
+                if len(labels) == 1:
+                    entry[metric] = float(means[0, j])
+                else:
+                    entry[metric] = float(point[j])
+                    entry[f"{metric}_ci"] = [float(ci[0, j]), float(ci[1, j])]
+            if len(labels) > 1:
+                entry["runs"] = labels
+            out[key]["controllers"][row] = entry
+    for grp in out.values():
+        ok = {r: e["position_rmse_mm"] for r, e in grp["controllers"].items()
+              if not e["terminated"] and math.isfinite(e["position_rmse_mm"])}
+        grp["best"] = min(ok, key=ok.get) if ok else None
+    return {"metrics": list(SUMMARY_METRICS), "groups": out}
+
+
+def who_drove_text(entry: dict[str, Any]) -> str:
+    """A summary row's who-drove cell, e.g. ``supervised (policy + fallback) ‡: a fallback took
+    over in 2 of 8 episodes; the policy drove 91 % of steps``."""
+    text = KINDS.get(entry["kind"], entry["kind"])
+    if entry["fallback_episodes"]:
+        text += (f" ‡: a fallback took over in {entry['fallback_episodes']} of "
+                 f"{entry['episodes']} episodes; the policy drove "
+                 f"{entry['policy_share'] * 100:.0f} % of steps")
+    elif entry["kind"] == "supervised":
+        text += ": the policy drove every step"
+    if entry["n_runs"] > 1:
+        text += f" (IQM over {entry['n_runs']} runs)"
+    return text
+
+
+def summary_cell(entry: dict[str, Any], metric: str, fmt: str) -> str:
+    """``0.123`` or, for several runs, ``0.123 [0.100, 0.150]``; ``(k terminated)`` after."""
+    cell = f"{entry[metric]:{fmt}}"
+    if f"{metric}_ci" in entry:
+        lo, hi = entry[f"{metric}_ci"]
+        cell += f" [{lo:{fmt}}, {hi:{fmt}}]"
+    if entry["terminated"]:
+        cell += f" ({entry['terminated']} of {entry['episodes']} terminated)"
+    return cell
+
+
+def summary_markdown(summ: dict[str, Any]) -> list[str]:
+    """The report's first section: the best controller per scenario group, then every
+    controller's means per group."""
+    groups = summ["groups"]
+    out = ["## Summary", "",
+           "Per scenario group: the mean over its scenarios of each controller's position RMSE "
+           "and stiffness RMSE (last three periods); best: the lowest mean position RMSE among "
+           "controllers none of whose episodes terminated. Several runs of one config are one "
+           "row: the interquartile mean over the runs of their means, and its 95 % "
+           "stratified-bootstrap confidence interval [low, high] (rliable). Who drove: "
+           "`(alone)` is a run's policy without its supervisor, its own figures; ‡ marks a "
+           "supervised row in which a fallback took over: its figures are the supervised "
+           "loop's, not the policy's.", "",
+           "| scenario group | best | position RMSE [mm] | stiffness RMSE [% of k̂] | "
+           "who drove |", "|---|---|---|---|---|"]
+    for g in groups.values():
+        title = f"{g['title']} ({len(g['scenarios'])})"
+        best = g["best"]
+        if best is None:
+            out.append(f"| {title} | none: every controller terminated somewhere | – | – | – |")
+            continue
+        e = g["controllers"][best]
+        who = who_drove_text(e)
+        alone = best + ALONE_LABEL
+        if e["fallback_episodes"] and alone in g["controllers"]:
+            a = g["controllers"][alone]
+            who += (f"; the policy alone, {alone}: "
+                    f"{summary_cell(a, 'position_rmse_mm', '.3f')} mm")
+        out.append(f"| {title} | **{best}{' ‡' if e['fallback_episodes'] else ''}** | "
+                   f"{summary_cell(e, 'position_rmse_mm', '.3f')} | "
+                   f"{summary_cell(e, 'stiffness_rmse_pct', '.2f')} | {who} |")
+    out += ["", "| controller | who drove | " + " | ".join(
+        f"{g['title']}: position [mm] | {g['title']}: stiffness [%]" for g in groups.values())
+        + " |", "|---|---|" + "---|---|" * len(groups)]
+    rows = next(iter(groups.values()))["controllers"]
+    for row, first in rows.items():
+        cells = []
+        for g in groups.values():
+            e = g["controllers"][row]
+            star = "**" if g["best"] == row else ""
+            took = (f" ‡ fallback in {e['fallback_episodes']} of {e['episodes']}"
+                    if e["fallback_episodes"] else "")
+            cells += [f"{star}{summary_cell(e, 'position_rmse_mm', '.3f')}{star}{took}",
+                      summary_cell(e, "stiffness_rmse_pct", ".2f")]
+        kind = KINDS.get(first["kind"], first["kind"]) + (
+            f" (IQM over {first['n_runs']} runs)" if first["n_runs"] > 1 else "")
+        out.append(f"| {row} | {kind} | " + " | ".join(cells) + " |")
+    return [*out, ""]
 
 
 def learning_speed(policies: list[str], results: dict[str, Any], scenario: str = "heldout_b"
@@ -287,10 +461,12 @@ def markdown(report: dict[str, Any]) -> str:
     stages = report.get("stages") or {}
     in_group = {r for g in groups.values() for r in g["runs"]}
     ctrls = [c for c in next(iter(res.values())) if c not in in_group]
-    out = ["# Evaluation report", "",
-           f"Episode seed {report['seed']}; metrics over the last three reference periods; "
-           "saturation over the whole episode; recovery: time after the impulse until "
-           f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm."]
+    out = ["# Evaluation report", ""]
+    if report.get("summary"):
+        out += summary_markdown(report["summary"])
+    out += [f"Episode seed {report['seed']}; metrics over the last three reference periods; "
+            "saturation over the whole episode; recovery: time after the impulse until "
+            f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm."]
     if groups:
         out.append("Several runs of one config are one column: the interquartile mean over "
                    "the runs and its 95 % stratified-bootstrap confidence interval [low, high] "
@@ -441,7 +617,8 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "controllers": report.get("controllers", {}),
             "supervisors": report.get("supervisors", {}),
             "stages": report.get("stages", {}),
-            "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
+            "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {}),
+            "kinds": report.get("kinds", {}), "summary": report.get("summary", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
         data["robustness"] = _finite(report["robustness"])
