@@ -84,7 +84,7 @@ from mpa_gym.agents.learned.policies import (
     spec_label,
     with_alone,
 )
-from mpa_gym.agents.learned.runs import read_eval_history
+from mpa_gym.agents.learned.runs import read_eval_history, run_files
 from mpa_gym.agents.worker import Worker, WorkerStopped
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
@@ -436,8 +436,12 @@ def tuned_on(spec: str) -> str:
         policy, _, cfg = load_policy(str(run), supervised=False)
         rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
         steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
+        zoo = run_files(run).zoo_args is not None
         return (f"PPO, {steps} env steps on the training scenario of its config "
                 f"(randomize: {rnd.describe()})"
+                + ("; trained by rl-baselines3-zoo (its config.yml and args.yml), which "
+                   "ignores the config's mpa_gym section: no supervisor, not anchored at rest"
+                   if zoo else "")
                 + ("" if supervised or cfg.supervisor is None else
                    "; evaluated alone, without its config's supervisor"))
     return "–"

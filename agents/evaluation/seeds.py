@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import subprocess
@@ -23,10 +24,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG
 from mpa_gym.agents.learned.policies import ALONE_LABEL, run_of, spec_label
+from mpa_gym.agents.learned.runs import read_run_config
 
 BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it
 CI = 0.95
@@ -96,7 +97,7 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
 
 def config_key(run: str | Path) -> str:
     """A run's config without its seed: runs of one config share it."""
-    data = yaml.safe_load((Path(run) / "config.yaml").read_text())
+    data = copy.deepcopy(read_run_config(run).raw)  # either layout (learned.runs)
     (data.get("mpa_gym") or {}).pop("seed", None)
     return json.dumps(data, sort_keys=True, default=str)
 

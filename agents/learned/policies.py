@@ -21,10 +21,10 @@ import numpy as np
 from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.excite import ExcitePolicy
 from mpa_gym.agents.controllers.supervisor import Supervised
-from mpa_gym.agents.learned.config import TrainConfig, load_config
+from mpa_gym.agents.learned.config import TrainConfig
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend, new_state
 from mpa_gym.agents.learned.inference import DeployedPolicy
-from mpa_gym.agents.learned.runs import legacy_objects
+from mpa_gym.agents.learned.runs import legacy_objects, read_run_config, run_files
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
 from mpa_gym.task.config import TaskConfig
@@ -59,8 +59,8 @@ def has_supervisor(spec: str) -> bool:
     """Whether ``spec`` is a run folder (as given, not ``:alone``) whose config has a
     ``supervisor`` section."""
     run, supervised = run_of(spec)
-    return (run is not None and supervised and (run / "config.yaml").is_file()
-            and load_config(run / "config.yaml").supervisor is not None)
+    return (run is not None and supervised and run_files(run).config.is_file()
+            and read_run_config(run).supervisor is not None)
 
 
 def with_alone(specs: list[str]) -> list[str]:
@@ -160,16 +160,18 @@ class LearnedPolicy:
 
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
-    """The policy of a training run folder (``final`` model or the ``best`` one) and its config.
+    """The policy of a training run folder (``final`` model or the ``best`` one) and its config:
+    a folder of ``mpa-gym train`` or of rl-baselines3-zoo (``mpa_gym.agents.learned.runs``:
+    ``run_files``, ``read_run_config``).
 
     ``deployed``: the compiled single-observation path of ``mpa_gym.agents.learned.inference`` (for
     the rig's real-time loop) instead of the SB3 one (batches, evaluation). The SB3 path is loaded
     once per process for as long as the run's files are unchanged (a report loads a run for every
     batch it runs; ``LearnedPolicy`` keeps no state of its own, so they can share it)."""
     run = Path(run_dir)
-    files = (("config.yaml", "model.zip", "vecnormalize.pkl") if which == "final" else
-             ("config.yaml", "best/best_model.zip", "best/vecnormalize.pkl"))
-    stamp = tuple(_stamp(run / name) for name in files)
+    files = run_files(run, which)
+    stamp = tuple(_stamp(path) for path in (files.config, files.model, files.normalizer,
+                                            files.zoo_args) if path is not None)
     if not deployed and stamp[1] is not None:
         return _load_learned(str(run.resolve()), which, stamp)
     return _load_run(run, which, deployed)
@@ -198,8 +200,9 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     torch.set_num_threads(1)
 
     run = Path(run_dir)
-    cfg = load_config(run / "config.yaml")
-    model_path = run / ("model.zip" if which == "final" else "best" / Path("best_model.zip"))
+    files = run_files(run, which)
+    cfg = read_run_config(run)
+    model_path = files.model
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path} not found: is {run} a finished run folder?")
     try:
@@ -207,7 +210,7 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     except Exception as e:  # a truncated zip, a foreign file: zipfile, pickle, torch errors
         raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
     norm = None
-    norm_path = run / ("vecnormalize.pkl" if which == "final" else "best/vecnormalize.pkl")
+    norm_path = files.normalizer
     if cfg.normalize:
         if not norm_path.is_file():
             raise FileNotFoundError(f"{norm_path} not found (the run normalises observations)")
@@ -223,6 +226,9 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         return DeployedPolicy.from_learned(
             policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
     return policy, cfg
+
+
+SCHEDULES = ("learning_rate", "lr_schedule", "clip_range", "clip_range_vf")
 
 
 class SavedModel:
@@ -244,8 +250,11 @@ class SavedModel:
     def load(cls, path: str | Path) -> SavedModel:
         from stable_baselines3.common.save_util import load_from_zip_file
 
-        data, params, _ = load_from_zip_file(path, device="cpu",
-                                             custom_objects=legacy_objects(Path(path)))
+        # the optimiser's schedules are not read for inference; rl-baselines3-zoo pickles them
+        # as classes of rl_zoo3, which need not be installed where its run is evaluated
+        skip = dict.fromkeys(SCHEDULES, 0.0)
+        data, params, _ = load_from_zip_file(path, device="cpu", custom_objects={
+            **legacy_objects(Path(path)), **skip})
         if data is None or "policy" not in params:
             raise ValueError("not a saved SB3 model (no data or no policy weights)")
         kwargs = {**data.get("policy_kwargs", {}), "optimizer_class": _NoOptimizer}
@@ -341,8 +350,8 @@ def load_policy(spec: str, env_kwargs: dict[str, Any] | None = None, deployed: b
     run, as_given = run_of(spec)
     if run is not None:
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
-        if dt is not None and (run / "config.yaml").is_file():
-            check_control_period(load_config(run / "config.yaml"), dt, run)
+        if dt is not None and run_files(run).config.is_file():
+            check_control_period(read_run_config(run), dt, run)
         policy, cfg = load_run(run, deployed=deployed)
         if cfg.supervisor is not None and supervised and as_given:
             policy = supervise(policy, cfg, env_kwargs)
