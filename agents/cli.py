@@ -701,8 +701,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=0, help="UDP port (0: any free one)")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
                    help="the plant the emulator plays")
-    p.add_argument("--watchdog", type=float, default=0.04, metavar="S",
-                   help="vent after this long without commands [s] (default 0.04)")
+    from mpa_gym.hardware.emulator import WATCHDOG_S
+
+    p.add_argument("--watchdog", type=float, default=WATCHDOG_S, metavar="S",
+                   help="vent after this long without commands [s] (default %(default)s)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
     p.add_argument("--realtime", action="store_true",
                    help="real-time (SCHED_FIFO) priority, as a device's firmware has, if "
