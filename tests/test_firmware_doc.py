@@ -122,3 +122,28 @@ def test_the_emulators_watchdog_flag_defaults_to_its_constant():
 def test_readme_and_design_link_the_guide():
     assert "docs/firmware.md" in (ROOT / "README.md").read_text()
     assert "firmware.md" in (ROOT / "docs" / "design.md").read_text()
+
+
+def test_the_guides_c_crc_is_the_protocols(tmp_path):
+    """The C function a device author copies, compiled and run (where a C compiler is): the
+    check value, and the CRC of a frame's body as the protocol computes it."""
+    import shutil
+    import subprocess
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    code = re.search(r"```c\n(.*?)```", DOC, flags=re.S).group(1)
+    frame = proto.encode(proto.Command(1, 1000, 1.5e5, 0.5e5))
+    body = frame[len(proto.SYNC):-proto.CRC_SIZE]
+    src = tmp_path / "crc.c"
+    src.write_text("#include <stdint.h>\n#include <stddef.h>\n#include <stdio.h>\n" + code
+                   + "int main(void) { static const uint8_t body[] = {"
+                   + ", ".join(str(b) for b in body) + "};\n"
+                   + '  printf("%04X %04X\\n", crc16_ccitt_false((const uint8_t *)"123456789", 9),'
+                   + f" crc16_ccitt_false(body, {len(body)}));\n  return 0;\n}}\n")
+    subprocess.run([cc, "-std=c99", "-o", str(tmp_path / "crc"), str(src)], check=True)
+    out = subprocess.run([str(tmp_path / "crc")], capture_output=True, text=True, check=True)
+    check, of_body = (int(v, 16) for v in out.stdout.split())
+    assert check == 0x29B1
+    assert of_body == int.from_bytes(frame[-proto.CRC_SIZE:], "little")
