@@ -109,10 +109,12 @@ def test_a_supervised_run_is_reported_beside_its_policy_alone(runs):
     assert line.startswith(f"w-s0 on trip: pid from {sup['fallback_s']:.1f} s")
     assert line.endswith(policy_said)
 
-    # the plot: an error panel in mm, and the hand-over drawn where it happened
+    # the plot: X and an error panel in mm, and the hand-over drawn where it happened
     fig = scenario_figure("trip", rep["traces"]["trip"], rep["stages"])
-    err = fig.axes[1]
-    assert err.get_ylabel() == "X − X̂ [mm]"
+    pos, err = fig.axes[:2]
+    assert pos.get_ylabel() == "X [mm]" and err.get_ylabel() == "X − X̂ [mm]"
+    xs = {ln.get_label(): ln for ln in pos.get_lines()}
+    np.testing.assert_allclose(xs["ff"].get_ydata(), rep["traces"]["trip"]["ff"].x * 1e3)
     lines = {ln.get_label(): ln for ln in err.get_lines()}
     tr = rep["traces"]["trip"]["ff"]
     np.testing.assert_allclose(lines["ff"].get_ydata(), (tr.x - tr.x_ref) * 1e3)

@@ -553,7 +553,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
                     stages: dict[str, list[str]] | None = None) -> Figure:
-    """One scenario's figure: X vs X̂, the error X − X̂ [mm] in a panel of its own, k vs k̂ and
+    """One scenario's figure: X vs X̂ [mm], the error X − X̂ [mm] in a panel of its own, k vs k̂ and
     both pressures for every controller; a vertical line in every panel, in the controller's
     colour, where a supervised controller's fallback (dashed) and last resort (dotted) took over,
     labelled in the error panel (``stages``: the supervisor's controllers, ``report["stages"]``)."""
@@ -565,11 +565,11 @@ def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
     fig.subplots_adjust(left=0.09, right=0.98, bottom=0.05, top=0.96, hspace=0.12)
     ax = fig.subplots(5, 1, sharex=True)
     first = next(iter(per_ctrl.values()))
-    ax[0].plot(first.t, first.x_ref, "k--", lw=1, label="X̂")
+    ax[0].plot(first.t, first.x_ref * 1e3, "k--", lw=1, label="X̂")
     ax[2].plot(first.t, first.k_ref, "k--", lw=1, label="k̂")
     for i, (name, tr) in enumerate(per_ctrl.items()):
         c = f"C{i}"
-        ax[0].plot(tr.t, tr.x, color=c, lw=1, label=name)
+        ax[0].plot(tr.t, tr.x * 1e3, color=c, lw=1, label=name)
         ax[1].plot(tr.t, (tr.x - tr.x_ref) * 1e3, color=c, lw=1, label=name)
         ax[2].plot(tr.t, tr.k, color=c, lw=1, label=name)
         ax[3].plot(tr.t, tr.pressure_bar[:, 0], color=c, lw=1, label=name)
@@ -583,7 +583,7 @@ def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
             for a in ax:
                 a.axvline(t, color=c, ls=ls, lw=1.2,
                           label=f"{name}: {who} from {t:.1f} s" if a is ax[1] else None)
-    ax[0].set(ylabel="X [m]", title=f"scenario {sc}")
+    ax[0].set(ylabel="X [mm]", title=f"scenario {sc}")
     ax[1].set(ylabel="X − X̂ [mm]")
     ax[2].set(ylabel="k [N/m]")
     ax[3].set(ylabel="P'_e [bar]")
