@@ -248,6 +248,11 @@ def test_the_summary_gives_the_best_per_scenario_group_and_who_drove(runs, monke
     assert best_row["best"] == "**r ‡**"
     assert "a fallback took over in 1 of 1 episodes" in best_row["who drove"]
     assert "the policy alone, r (alone): 5.000 mm" in best_row["who drove"]
+    # ... and a supervised loop that its fallback drove to the fallback's own figure (equal to
+    # the printed decimals) does not take the title from the fallback itself
+    tie = crafted["results"]["trip"]
+    tie["r"]["position_rmse_mm"], tie["pid"]["position_rmse_mm"] = 0.2553941, 0.2553944
+    assert summary(crafted)["groups"]["other"]["best"] == "pid"
 
 
 def test_evaluate_json_and_table_carry_the_summary(runs, tmp_path, capsys):

@@ -18,7 +18,9 @@ fixture's files are the ones rl-zoo writes.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import json
+import os
 import subprocess
 import sys
 from collections import OrderedDict
@@ -114,24 +116,27 @@ def zoo_run(tmp_path_factory):
     return save, model, hp
 
 
-def evaluate_cli(run: Path, tmp: Path) -> dict:
-    """``mpa-gym evaluate --policy RUN ff --json`` in a fresh interpreter (which cannot import
-    the fixture's schedule module)."""
+def evaluate_cli(run: Path, tmp: Path, capsys) -> dict:
+    """``mpa-gym evaluate --policy RUN ff --json`` (the fixture's schedule module is no longer
+    importable: the fixture took it off the path)."""
+    from mpa_gym.agents.cli import main
+
+    assert importlib.util.find_spec("zoo_schedules") is None
     scen = tmp / "sc.yaml"
     scen.write_text(yaml.safe_dump(SC))
-    r = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "evaluate", "--policy",
-                        str(run), "ff", "--scenarios", str(scen), "--no-robustness", "--out",
-                        str(tmp / "rep"), "--json"], capture_output=True, text=True, cwd=ROOT)
-    assert r.returncode == 0, r.stderr
-    return json.loads(r.stdout)
+    code = main(["evaluate", "--policy", str(run), "ff", "--scenarios", str(scen),
+                 "--no-robustness", "--out", str(tmp / "rep"), "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out)
 
 
-def test_a_zoo_run_folder_evaluates_to_its_models_own_episode(zoo_run, tmp_path):
+def test_a_zoo_run_folder_evaluates_to_its_models_own_episode(zoo_run, tmp_path, capsys):
     """The report's row of the zoo run is the trained model's episode on the zoo's own wrapper
     chain (single env, the config's wrappers, the saved normaliser, SB3's deterministic
     predict), on the same scenario and episode seed."""
     run, model, hp = zoo_run
-    out = evaluate_cli(run, tmp_path)
+    out = evaluate_cli(run, tmp_path, capsys)
     row = out["results"]["zoo_check"][run.name]
     assert not row["terminated"] and row["policy_share"] == 1.0
     summary = out["summary"]["groups"]["other"]["controllers"][run.name]
@@ -170,7 +175,7 @@ def test_a_folder_of_neither_layout_is_named(tmp_path, capsys):
     assert "neither config.yaml" in err and "rl-baselines3-zoo" in err and "Traceback" not in err
 
 
-def test_rl_zoo_itself_writes_the_fixtures_layout(zoo_run, tmp_path):
+def test_rl_zoo_itself_writes_the_fixtures_layout(zoo_run, tmp_path, capsys):
     """With rl_zoo3 installed (the ``zoo`` extra): rl-zoo trains the default config for a few
     hundred steps; its folder holds the fixture's files and evaluates."""
     pytest.importorskip("rl_zoo3")
@@ -181,7 +186,7 @@ def test_rl_zoo_itself_writes_the_fixtures_layout(zoo_run, tmp_path):
     r = subprocess.run([sys.executable, "-m", "rl_zoo3.train", "--algo", "ppo", "--env", ENV,
                         "--gym-packages", "mpa_gym", "-conf", str(conf), "--seed", "3",
                         "--eval-freq", "-1"], capture_output=True, text=True, cwd=tmp_path,
-                       env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+                       env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert r.returncode == 0, r.stderr[-3000:]
     run = tmp_path / "logs" / "ppo" / f"{ENV}_1"
 
@@ -190,5 +195,5 @@ def test_rl_zoo_itself_writes_the_fixtures_layout(zoo_run, tmp_path):
                 if p.is_file() and not p.name.endswith(".monitor.csv")}
 
     assert files(run) == files(zoo_run[0])
-    out = evaluate_cli(run, tmp_path)
+    out = evaluate_cli(run, tmp_path, capsys)
     assert not out["results"]["zoo_check"][run.name]["terminated"]
