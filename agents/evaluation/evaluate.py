@@ -239,9 +239,11 @@ def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, A
 
 
 # What drove a report row (``report["kinds"]``): a classical baseline, a run folder under its
-# supervisor, the same run's policy without it (``RUN_DIR:alone``), a run without a supervisor
+# supervisor, the same run's policy without it (``RUN_DIR:alone``), a run without a supervisor,
+# any other controller
 KINDS = {"baseline": "baseline", "supervised": "supervised (policy + fallback)",
-         "alone": "the policy alone", "policy": "the policy (no supervisor)"}
+         "alone": "the policy alone", "policy": "the policy (no supervisor)",
+         "controller": "controller"}
 
 
 def controller_kind(spec: str, learned: dict[str, Any]) -> str:
@@ -250,7 +252,9 @@ def controller_kind(spec: str, learned: dict[str, Any]) -> str:
     if spec in BASELINES:
         return "baseline"
     run, supervised = run_of(spec)
-    if run is not None and not supervised:
+    if run is None:
+        return "controller"
+    if not supervised:
         return "alone"
     if spec in learned and isinstance(learned[spec][0], Supervised):
         return "supervised"
@@ -310,7 +314,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
         for key, grp in sgroups.items():
             per = [res[sc][lab] for lab in labels for sc in grp["scenarios"]]
             entry: dict[str, Any] = {
-                "kind": kinds.get(labels[0], "policy"), "n_runs": len(labels),
+                "kind": kinds.get(labels[0], "controller"), "n_runs": len(labels),
                 "episodes": len(per), "terminated": sum(bool(m["terminated"]) for m in per),
                 "fallback_episodes": sum(m.get("fallback_s") is not None for m in per),
                 "policy_share": float(np.mean([m.get("policy_share", 1.0) for m in per]))}
