@@ -441,3 +441,17 @@ def test_a_run_shorter_than_eval_freq_ends_with_a_held_out_evaluation(tmp_path, 
         # float32 tensorboard scalars aside, the same episode: equal to rounding
         np.testing.assert_allclose(last["scenarios"]["ev"][key], again[key], rtol=1e-9)
     np.testing.assert_allclose(logged[-1].value, again["position_rmse_mm"], rtol=1e-6)
+
+
+def test_the_final_evaluation_in_the_worker_is_the_training_processes(tmp_path):
+    """With the evaluation worker, the final evaluation (as the one at step 0) runs there on a
+    snapshot of the model as training left it: the same figures as in the training process."""
+    runs = []
+    for where in ("worker", "process"):
+        (tmp_path / where).mkdir()
+        runs.append(train(tiny_config(tmp_path / where, 256, eval_freq=10_000),
+                          tmp_path / where / "run", progress=False,
+                          eval_worker=where == "worker"))
+    hw, hp = (read_eval_history(r / "eval")[0] for r in runs)
+    assert [h["timesteps"] for h in hw] == [0, zip_timesteps(runs[0] / "model.zip")]
+    assert hw == hp
