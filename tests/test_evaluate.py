@@ -204,7 +204,7 @@ def test_the_summary_gives_the_best_per_scenario_group_and_who_drove(runs, monke
     mean of the rows that never terminated. (500 bootstrap samples: what is checked of the
     interval holds for any number.)"""
     from mpa_gym.agents.evaluation import seeds
-    from mpa_gym.agents.evaluation.evaluate import summary
+    from mpa_gym.agents.evaluation.evaluate import summary, summary_markdown
 
     monkeypatch.setattr(seeds, "BOOTSTRAP_REPS", 500)
 
@@ -253,6 +253,28 @@ def test_the_summary_gives_the_best_per_scenario_group_and_who_drove(runs, monke
     tie = crafted["results"]["trip"]
     tie["r"]["position_rmse_mm"], tie["pid"]["position_rmse_mm"] = 0.2553941, 0.2553944
     assert summary(crafted)["groups"]["other"]["best"] == "pid"
+
+    # the sweep's levels are a group too: position only, a terminated cell has no figure and
+    # cannot be best (cells as robustness.cell_metrics writes them)
+    def cell(mm, terminated=False):
+        return {"position_rmse_mm": None if terminated else mm, "terminated": terminated,
+                "unstable": terminated, "fallback_s": None, "last_resort_s": None,
+                "policy_share": 1.0}
+
+    crafted["robustness"] = {"levels": {
+        "easy": {"r": cell(0.5), "r (alone)": cell(0.7), "pid": cell(0.4)},
+        "hard": {"r": cell(2.0), "r (alone)": cell(0, terminated=True), "pid": cell(3.0)}}}
+    lv = summary(crafted)["groups"]["levels"]
+    assert lv["scenarios"] == ["easy", "hard"]
+    assert lv["controllers"]["r"]["position_rmse_mm"] == pytest.approx(1.25, rel=1e-12)
+    assert lv["controllers"]["pid"]["position_rmse_mm"] == pytest.approx(1.7, rel=1e-12)
+    assert lv["controllers"]["r (alone)"]["position_rmse_mm"] is None
+    assert lv["controllers"]["r (alone)"]["terminated"] == 1
+    assert "stiffness_rmse_pct" not in lv["controllers"]["r"] and lv["best"] == "r"
+    crafted["summary"] = summary(crafted)
+    json.dumps(crafted["summary"], allow_nan=False)  # report.json's rule: no NaN, no inf
+    assert "| robustness levels (2) | **r** | 1.250 | – |" in "\n".join(
+        summary_markdown(crafted["summary"]))
 
 
 def test_evaluate_json_and_table_carry_the_summary(runs, tmp_path, capsys):

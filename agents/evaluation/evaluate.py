@@ -266,6 +266,8 @@ def controller_kind(spec: str, learned: dict[str, Any]) -> str:
 SCENARIO_GROUPS = {"paper": ("the paper's scenarios", PAPER_SCENARIOS),
                    "held_out": ("held-out plants", HELDOUT_SCENARIOS)}
 OTHER_GROUP = ("other", "other scenarios")
+# the robustness sweep's combined-effect levels, when the report has the sweep
+LEVELS_GROUP = ("levels", "robustness levels")
 SUMMARY_METRICS = ("position_rmse_mm", "stiffness_rmse_pct")
 # [mm] means closer than this are a tie (equal to the three decimals the report prints): the
 # best is then one that drove all its own steps, not a supervised loop whose fallback drove
@@ -289,7 +291,9 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     """The report's summary: per scenario group (:func:`scenario_groups`) and controller the mean
     of each of ``SUMMARY_METRICS`` over the group's scenarios, and the best controller (lowest
     mean position RMSE among those whose episodes all ran to the end; within
-    ``SUMMARY_TIE_MM`` of it, one in whose episodes no fallback took over comes first).
+    ``SUMMARY_TIE_MM`` of it, one in whose episodes no fallback took over comes first). With
+    the robustness sweep, its levels are one more group (:data:`LEVELS_GROUP`: position RMSE
+    only; a terminated cell has none).
 
     Several runs of one config (``report["groups"]``) are one row: each run's mean over the
     group's scenarios, then their interquartile mean and its 95 % stratified-bootstrap CI
@@ -303,34 +307,45 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     rows = {c: [c] for c in next(iter(res.values())) if c not in in_group}
     rows.update({g: v["runs"] for g, v in seed.items()})
     sgroups = scenario_groups(list(res))
-    columns = [(key, metric) for key in sgroups for metric in SUMMARY_METRICS]
+    tables = {key: (res, SUMMARY_METRICS) for key in sgroups}  # where a group's figures are
+    levels = (report.get("robustness") or {}).get("levels") or {}
+    if levels:  # the sweep's levels: position only (the sweep measures no stiffness)
+        sgroups[LEVELS_GROUP[0]] = {"title": LEVELS_GROUP[1], "scenarios": list(levels)}
+        tables[LEVELS_GROUP[0]] = (levels, ("position_rmse_mm",))
+    columns = [(key, metric) for key in sgroups for metric in tables[key][1]]
     out: dict[str, Any] = {key: {**grp, "controllers": {}} for key, grp in sgroups.items()}
     for row, labels in rows.items():
-        # each run's mean over each group's scenarios, for every (group, metric): runs × columns
-        means = np.array([[np.mean([res[sc][lab][metric] for sc in sgroups[key]["scenarios"]])
+        # each run's mean over each group's scenarios, for every (group, metric): runs × columns;
+        # NaN where an episode has no figure (a terminated sweep cell)
+        means = np.array([[np.mean([np.nan if tables[key][0][sc][lab].get(metric) is None
+                                    else tables[key][0][sc][lab][metric]
+                                    for sc in sgroups[key]["scenarios"]])
                            for key, metric in columns] for lab in labels])
-        if len(labels) > 1:  # one bootstrap for all the row's columns
-            point, ci = iqm_ci(means)
+        point, ci = means[0], np.full((2, len(columns)), np.nan)
+        finite = np.all(np.isfinite(means), axis=0)
+        if len(labels) > 1:  # one bootstrap for all the row's columns that have figures
+            point = np.full(len(columns), np.nan)
+            if finite.any():
+                point[finite], ci[:, finite] = iqm_ci(means[:, finite])
         for key, grp in sgroups.items():
-            per = [res[sc][lab] for lab in labels for sc in grp["scenarios"]]
+            table, metrics = tables[key]
+            per = [table[sc][lab] for lab in labels for sc in grp["scenarios"]]
             entry: dict[str, Any] = {
                 "kind": kinds.get(labels[0], "controller"), "n_runs": len(labels),
                 "episodes": len(per), "terminated": sum(bool(m["terminated"]) for m in per),
                 "fallback_episodes": sum(m.get("fallback_s") is not None for m in per),
                 "policy_share": float(np.mean([m.get("policy_share", 1.0) for m in per]))}
-            for metric in SUMMARY_METRICS:
+            for metric in metrics:
                 j = columns.index((key, metric))
-                if len(labels) == 1:
-                    entry[metric] = float(means[0, j])
-                else:
-                    entry[metric] = float(point[j])
+                entry[metric] = float(point[j]) if finite[j] else None
+                if len(labels) > 1 and finite[j]:
                     entry[f"{metric}_ci"] = [float(ci[0, j]), float(ci[1, j])]
             if len(labels) > 1:
                 entry["runs"] = labels
             out[key]["controllers"][row] = entry
     for grp in out.values():
         ok = {r: e["position_rmse_mm"] for r, e in grp["controllers"].items()
-              if not e["terminated"] and math.isfinite(e["position_rmse_mm"])}
+              if not e["terminated"] and e["position_rmse_mm"] is not None}
         if not ok:
             grp["best"] = None
             continue
@@ -357,8 +372,9 @@ def who_drove_text(entry: dict[str, Any]) -> str:
 
 
 def summary_cell(entry: dict[str, Any], metric: str, fmt: str) -> str:
-    """``0.123`` or, for several runs, ``0.123 [0.100, 0.150]``; ``(k terminated)`` after."""
-    cell = f"{entry[metric]:{fmt}}"
+    """``0.123`` or, for several runs, ``0.123 [0.100, 0.150]``; ``(k terminated)`` after;
+    ``–`` where the group has no such figure (the sweep's stiffness, a terminated cell)."""
+    cell = "–" if entry.get(metric) is None else f"{entry[metric]:{fmt}}"
     if f"{metric}_ci" in entry:
         lo, hi = entry[f"{metric}_ci"]
         cell += f" [{lo:{fmt}}, {hi:{fmt}}]"
