@@ -401,9 +401,11 @@ def show_summary(summ: dict[str, Any]) -> str:
             lines.append(f"best on {g['title']}: none (every controller terminated somewhere)")
             continue
         e = g["controllers"][best]
+        stiff = ("" if e.get("stiffness_rmse_pct") is None else
+                 f", {summary_cell(e, 'stiffness_rmse_pct', '.2f')} %")
         lines.append(f"best on {g['title']}: {best}{' ‡' if e['fallback_episodes'] else ''}, "
-                     f"{summary_cell(e, 'position_rmse_mm', '.3f')} mm, "
-                     f"{summary_cell(e, 'stiffness_rmse_pct', '.2f')} % ({who_drove_text(e)})")
+                     f"{summary_cell(e, 'position_rmse_mm', '.3f')} mm{stiff} "
+                     f"({who_drove_text(e)})")
     return "\n".join(lines)
 
 
