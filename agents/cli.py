@@ -317,7 +317,8 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
                       plots_dir=Path(a.out) / "plots", gains=_gains(a))
     paths = write_report(report, a.out)
     data = json.loads(paths["json"].read_text())
-    return {"results": data["results"], "robustness": data.get("robustness"),
+    return {"summary": data["summary"], "results": data["results"],
+            "robustness": data.get("robustness"),
             "groups": data.get("groups") or {}, "no_harm": data.get("no_harm") or {},
             "stages": data.get("stages") or {}, "hand_overs": hand_over_lines(report),
             "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
@@ -369,7 +370,7 @@ def show_evaluate(o: dict[str, Any]) -> str:
     return (head + "\n"
             + _table(rows, ["scenario", *ctrls,
                             *(f"{g} ({len(v['runs'])} runs)" for g, v in groups.items())])
-            + extra
+            + extra + "\n\n" + show_summary(o["summary"])
             + f"\n\nreport: {o['report_md']} (and {o['report_json']}, plots in {o['plots']})")
 
 
@@ -378,6 +379,44 @@ def _gains(a: argparse.Namespace) -> Any:
     from mpa_gym.agents.controllers.gains import load_gains
 
     return load_gains(a.gains, "--gains")
+
+
+def show_summary(summ: dict[str, Any]) -> str:
+    """``evaluate``'s summary (``mpa_gym.agents.evaluation.evaluate.summary``) as a table: every
+    controller's means per scenario group, the best of each group starred, then the best of
+    each group in words with who drove."""
+    from mpa_gym.agents.evaluation.evaluate import KINDS, summary_cell, who_drove_text
+
+    groups = summ["groups"]
+    first = next(iter(groups.values()))["controllers"]
+    rows = []
+    for row, e0 in first.items():
+        cells = []
+        for g in groups.values():
+            e = g["controllers"][row]
+            cells.append(summary_cell(e, "position_rmse_mm", ".3f") + " / "
+                         + summary_cell(e, "stiffness_rmse_pct", ".1f")
+                         + (f" ‡{e['fallback_episodes']}/{e['episodes']}"
+                            if e["fallback_episodes"] else "")
+                         + (" *" if g["best"] == row else ""))
+        rows.append([row, KINDS.get(e0["kind"], e0["kind"]), *cells])
+    lines = ["summary: mean over each group's scenarios, position RMSE [mm] / stiffness RMSE "
+             "[% of k̂] (several runs: IQM [95 % CI] over the runs); * best of the group; "
+             "‡k/n: a fallback took over in k of n episodes (the supervised loop's figure)",
+             _table(rows, ["controller", "who drove", *(f"{g['title']} ({len(g['scenarios'])})"
+                                                         for g in groups.values())])]
+    for g in groups.values():
+        best = g["best"]
+        if best is None:
+            lines.append(f"best on {g['title']}: none (every controller terminated somewhere)")
+            continue
+        e = g["controllers"][best]
+        stiff = ("" if e.get("stiffness_rmse_pct") is None else
+                 f", {summary_cell(e, 'stiffness_rmse_pct', '.2f')} %")
+        lines.append(f"best on {g['title']}: {best}{' ‡' if e['fallback_episodes'] else ''}, "
+                     f"{summary_cell(e, 'position_rmse_mm', '.3f')} mm{stiff} "
+                     f"({who_drove_text(e)})")
+    return "\n".join(lines)
 
 
 def cmd_tune_baselines(a: argparse.Namespace) -> dict[str, Any]:
@@ -728,8 +767,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--port", type=int, default=0, help="UDP port (0: any free one)")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
                    help="the plant the emulator plays")
-    p.add_argument("--watchdog", type=float, default=0.04, metavar="S",
-                   help="vent after this long without commands [s] (default 0.04)")
+    from mpa_gym.hardware.emulator import WATCHDOG_S
+
+    p.add_argument("--watchdog", type=float, default=WATCHDOG_S, metavar="S",
+                   help="vent after this long without commands [s] (default %(default)s)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S s")
     p.add_argument("--realtime", action="store_true",
                    help="real-time (SCHED_FIFO) priority, as a device's firmware has, if "

@@ -65,10 +65,11 @@ def remove_stale_temporaries(folder: str | os.PathLike[str]) -> int:
     return n
 
 
-def read_yaml(path: str | os.PathLike[str], what: str, error: type[ValueError] = ValueError
-              ) -> Any:
+def read_yaml(path: str | os.PathLike[str], what: str, error: type[ValueError] = ValueError,
+              loader: type[yaml.SafeLoader] = yaml.SafeLoader) -> Any:
     """The YAML document in ``path``; ``error`` names the file and the problem (missing, a
-    folder, not UTF-8 text, not YAML)."""
+    folder, not UTF-8 text, not YAML). ``loader``: a ``yaml.SafeLoader`` subclass that also
+    reads a tag of its own."""
     p = Path(path)
     if p.is_dir():
         raise error(f"{what} {str(p)!r} is a folder, not a YAML file")
@@ -82,7 +83,7 @@ def read_yaml(path: str | os.PathLike[str], what: str, error: type[ValueError] =
     except OSError as e:
         raise error(f"{what} {str(p)!r} cannot be read: {e.strerror}") from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=loader)  # a SafeLoader (subclass): no object is built
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""

@@ -109,10 +109,12 @@ def test_a_supervised_run_is_reported_beside_its_policy_alone(runs):
     assert line.startswith(f"w-s0 on trip: pid from {sup['fallback_s']:.1f} s")
     assert line.endswith(policy_said)
 
-    # the plot: an error panel in mm, and the hand-over drawn where it happened
+    # the plot: X and an error panel in mm, and the hand-over drawn where it happened
     fig = scenario_figure("trip", rep["traces"]["trip"], rep["stages"])
-    err = fig.axes[1]
-    assert err.get_ylabel() == "X − X̂ [mm]"
+    pos, err = fig.axes[:2]
+    assert pos.get_ylabel() == "X [mm]" and err.get_ylabel() == "X − X̂ [mm]"
+    xs = {ln.get_label(): ln for ln in pos.get_lines()}
+    np.testing.assert_allclose(xs["ff"].get_ydata(), rep["traces"]["trip"]["ff"].x * 1e3)
     lines = {ln.get_label(): ln for ln in err.get_lines()}
     tr = rep["traces"]["trip"]["ff"]
     np.testing.assert_allclose(lines["ff"].get_ydata(), (tr.x - tr.x_ref) * 1e3)
@@ -193,3 +195,102 @@ def test_the_evaluate_summary_prints_the_hand_overs(runs, tmp_path, capsys):
     # the table's supervised cell is marked, the policy alone's is not
     table = next(ln for ln in text.splitlines() if ln.split()[:1] == ["trip"])
     assert table.count("‡") == 1
+
+
+def test_the_summary_gives_the_best_per_scenario_group_and_who_drove(runs, monkeypatch):
+    """The summary's figures recomputed from the report's own per-scenario rows: one
+    controller's mean over a group's scenarios, a group of two runs' IQM (of two values, their
+    mean) with its interval around it, the fallback's episodes counted, the best the lowest
+    mean of the rows that never terminated. (500 bootstrap samples: what is checked of the
+    interval holds for any number.)"""
+    from mpa_gym.agents.evaluation import seeds
+    from mpa_gym.agents.evaluation.evaluate import summary, summary_markdown
+
+    monkeypatch.setattr(seeds, "BOOTSTRAP_REPS", 500)
+
+    # heldout_a's plant, shortened: a scenario of the held-out group (grouped by name)
+    held = {**yaml.safe_load(open("configs/scenarios/heldout_a.yaml")), "duration_s": 2.0,
+            "reference": TRIP["reference"]}
+    rep = evaluate([*runs, "ff", "pid"], [TRIP, held])
+    res, summ = rep["results"], rep["summary"]["groups"]
+    assert list(summ) == ["held_out", "other"]
+    assert summ["other"]["scenarios"] == ["trip"] and summ["held_out"]["scenarios"] == ["heldout_a"]
+    g = summ["other"]["controllers"]
+    assert set(g) == {"w", "w (alone)", "ff", "pid"}  # the seeds' rows are their group's
+    assert g["ff"]["position_rmse_mm"] == res["trip"]["ff"]["position_rmse_mm"]
+    assert g["ff"]["kind"] == "baseline" and g["w (alone)"]["kind"] == "alone"
+    both = [res["trip"][r]["position_rmse_mm"] for r in ("w-s0", "w-s1")]
+    w = g["w"]
+    assert w["kind"] == "supervised" and w["n_runs"] == 2
+    np.testing.assert_allclose(w["position_rmse_mm"], np.mean(both), rtol=1e-12)
+    lo, hi = w["position_rmse_mm_ci"]
+    assert min(both) - 1e-12 <= lo <= w["position_rmse_mm"] <= hi <= max(both) + 1e-12
+    # the hair trigger hands both runs to pid on trip; the policy alone has no fallback
+    assert w["fallback_episodes"] == 2 and g["w (alone)"]["fallback_episodes"] == 0
+    np.testing.assert_allclose(w["policy_share"], np.mean(
+        [res["trip"][r]["policy_share"] for r in ("w-s0", "w-s1")]), rtol=1e-12)
+    for grp in summ.values():
+        ok = {r: e["position_rmse_mm"] for r, e in grp["controllers"].items()
+              if not e["terminated"]}
+        assert grp["best"] == min(ok, key=ok.get)
+
+    # a supervised row that a fallback drove is never named best without its mark, and the
+    # policy alone's figure stands beside it (the rows' figures set by hand to make it best)
+    crafted = {"results": {"trip": {
+        "r": {**res["trip"]["w-s0"], "position_rmse_mm": 0.01},
+        "r (alone)": {**res["trip"]["w-s0 (alone)"], "position_rmse_mm": 5.0},
+        "pid": {**res["trip"]["pid"], "position_rmse_mm": 1.0}}},
+        "kinds": {"r": "supervised", "r (alone)": "alone", "pid": "baseline"}, "groups": {}}
+    crafted["summary"] = summary(crafted)
+    md = markdown({**crafted, "seed": 0})
+    first = md.split("## Summary\n")[1].split("\n\n| controller")[0]  # the best per group
+    best_row = _table(f"## Summary\n{first}", "Summary")["other scenarios (1)"]
+    assert best_row["best"] == "**r ‡**"
+    assert "a fallback took over in 1 of 1 episodes" in best_row["who drove"]
+    assert "the policy alone, r (alone): 5.000 mm" in best_row["who drove"]
+    # ... and a supervised loop that its fallback drove to the fallback's own figure (equal to
+    # the printed decimals) does not take the title from the fallback itself
+    tie = crafted["results"]["trip"]
+    tie["r"]["position_rmse_mm"], tie["pid"]["position_rmse_mm"] = 0.2553941, 0.2553944
+    assert summary(crafted)["groups"]["other"]["best"] == "pid"
+
+    # the sweep's levels are a group too: position only, a terminated cell has no figure and
+    # cannot be best (cells as robustness.cell_metrics writes them)
+    def cell(mm, terminated=False):
+        return {"position_rmse_mm": None if terminated else mm, "terminated": terminated,
+                "unstable": terminated, "fallback_s": None, "last_resort_s": None,
+                "policy_share": 1.0}
+
+    crafted["robustness"] = {"levels": {
+        "easy": {"r": cell(0.5), "r (alone)": cell(0.7), "pid": cell(0.4)},
+        "hard": {"r": cell(2.0), "r (alone)": cell(0, terminated=True), "pid": cell(3.0)}}}
+    lv = summary(crafted)["groups"]["levels"]
+    assert lv["scenarios"] == ["easy", "hard"]
+    assert lv["controllers"]["r"]["position_rmse_mm"] == pytest.approx(1.25, rel=1e-12)
+    assert lv["controllers"]["pid"]["position_rmse_mm"] == pytest.approx(1.7, rel=1e-12)
+    assert lv["controllers"]["r (alone)"]["position_rmse_mm"] is None
+    assert lv["controllers"]["r (alone)"]["terminated"] == 1
+    assert "stiffness_rmse_pct" not in lv["controllers"]["r"] and lv["best"] == "r"
+    crafted["summary"] = summary(crafted)
+    json.dumps(crafted["summary"], allow_nan=False)  # report.json's rule: no NaN, no inf
+    assert "| robustness levels (2) | **r** | 1.250 | – |" in "\n".join(
+        summary_markdown(crafted["summary"]))
+
+
+def test_evaluate_json_and_table_carry_the_summary(runs, tmp_path, capsys):
+    scen = tmp_path / "trip.yaml"
+    scen.write_text(yaml.safe_dump(TRIP))
+    args = ["evaluate", "--policy", runs[0], "pid", "--scenarios", str(scen), "--no-robustness",
+            "--out", str(tmp_path / "rep")]
+    assert main([*args, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    on_disk = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert out["summary"] == on_disk["summary"]
+    best = out["summary"]["groups"]["other"]["best"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    mark = " ‡" if out["summary"]["groups"]["other"]["controllers"][best]["fallback_episodes"] \
+        else ""
+    assert f"best on other scenarios: {best}{mark}, " in text
+    md = (tmp_path / "rep" / "report.md").read_text()
+    assert md.index("## Summary") < md.index("## position RMSE [mm]")

@@ -170,3 +170,51 @@ def test_import_does_not_need_pygame():
     code = "import sys, mpa_gym, mpa_gym.envs; assert 'pygame' not in sys.modules"
     root = Path(__file__).resolve().parents[1]
     subprocess.run([sys.executable, "-c", code], cwd=root, check=True)
+
+
+@pytest.mark.parametrize("env_id", ["MPALeg-v0", "MPALegResidual-v0"])
+@pytest.mark.parametrize("dt_s", [0.01, 0.02, 0.004])
+def test_render_fps_is_the_control_rate(env_id, dt_s):
+    """One frame per control period: a video at ``render_fps`` plays at real time when the
+    frame rate is 1/dt, for this instance's dt (two instances with different dt apart)."""
+    import gymnasium as gym
+
+    import mpa_gym  # noqa: F401
+
+    env = gym.make(env_id, task={"dt_s": dt_s}, render_mode="rgb_array")
+    other = gym.make(env_id, task={"dt_s": 0.05}, render_mode="rgb_array")
+    assert env.metadata["render_fps"] == pytest.approx(1.0 / dt_s, rel=1e-12)
+    assert other.metadata["render_fps"] == pytest.approx(20.0, rel=1e-12)
+    env.reset(seed=0)
+    for _ in range(7):  # the env's clock advances one frame period per step
+        *_, info = env.step(np.zeros(2, dtype=np.float32))
+    assert info["t_s"] * env.metadata["render_fps"] == pytest.approx(7, abs=1e-9)
+    env.close()
+    other.close()
+
+
+def test_recorded_video_plays_at_real_time(tmp_path):
+    """RecordVideo's video of a 0.5 s episode at 100 Hz lasts 0.5 s (it read render_fps), not
+    the 1 s of a video declared at 50 fps. Needs moviepy (gymnasium's video writer); the
+    duration it reads back is allowed one frame of rounding."""
+    pytest.importorskip("moviepy")
+    import gymnasium as gym
+    from gymnasium.wrappers import RecordVideo
+    from moviepy import VideoFileClip
+
+    import mpa_gym  # noqa: F401
+
+    dt_s, steps = 0.01, 50
+    env = RecordVideo(gym.make("MPALegResidual-v0", task={"dt_s": dt_s, "episode_s": steps * dt_s},
+                               render_mode="rgb_array"), str(tmp_path), disable_logger=True)
+    env.reset(seed=0)
+    done = False
+    while not done:
+        _, _, term, trunc, _ = env.step(np.zeros(2, dtype=np.float32))
+        done = term or trunc
+    env.close()
+    (video,) = tmp_path.glob("*.mp4")
+    with VideoFileClip(str(video)) as clip:
+        assert clip.fps == pytest.approx(1.0 / dt_s, rel=1e-6)
+        # reset's frame and one per step: steps + 1 frames at 1/dt
+        assert clip.duration == pytest.approx((steps + 1) * dt_s, abs=dt_s + 1e-9)

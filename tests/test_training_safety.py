@@ -233,15 +233,16 @@ def evaluated_run(tmp_path_factory):
                  progress=False)
 
 
-@pytest.mark.parametrize(("returns", "kept_best"), [([-10.0, -5.0, -1.0], 256),
-                                                    ([-1.0, -5.0, -0.5], None)])
+@pytest.mark.parametrize(("returns", "kept_best"), [([-10.0, 1e9, 2e9], 256),
+                                                    ([1e9, -5.0, 2e9], None)])
 def test_resume_drops_a_best_model_of_the_discarded_timeline(evaluated_run, tmp_path, capsys,
                                                              returns, kept_best):
     """Killed after the evaluation at 512 steps saved best/ but before the checkpoint at 512:
     the resume cuts that evaluation, and best/ with it. It comes back from the checkpoint at the
     best kept evaluation (256), or, the best kept being the initial policy (no checkpoint at
-    step 0), is removed until the next evaluation writes one. The returns are set by hand to
-    make each case."""
+    step 0), is removed until the next evaluation writes one: here the held-out evaluation at
+    the resumed run's last step. The returns are set by hand to make each case (a kept best of
+    1e9 no real episode beats)."""
     run = tmp_path / "run"
     shutil.copytree(evaluated_run, run)
     hist, ts, _, lens = read_eval_history(run / "eval")
@@ -251,7 +252,7 @@ def test_resume_drops_a_best_model_of_the_discarded_timeline(evaluated_run, tmp_
                      ("ppo_vecnormalize_512_steps.pkl", "vecnormalize.pkl")):
         shutil.copy(run / "checkpoints" / src, run / "best" / dst)
     kill_after(run, 384)
-    train(resume=run, n_timesteps=64, progress=False)  # one rollout: no evaluation
+    train(resume=run, n_timesteps=64, progress=False)  # one rollout, then the final evaluation
     err = capsys.readouterr().err
     assert "best/ was saved at step 512 by an evaluation after step 384" in err, err
     best = run / "best" / "best_model.zip"
@@ -262,10 +263,8 @@ def test_resume_drops_a_best_model_of_the_discarded_timeline(evaluated_run, tmp_
         assert (run / "best" / "vecnormalize.pkl").read_bytes() == \
             (ck / f"ppo_vecnormalize_{kept_best}_steps.pkl").read_bytes()
     else:
-        assert "removed it" in err and not best.exists(), err
-        assert not (run / "best" / "vecnormalize.pkl").exists()
-        train(resume=run, n_timesteps=256, progress=False)  # an evaluation at 512 + 256
-        assert zip_timesteps(best) == 768  # the next evaluation wrote best/
+        assert "removed it" in err, err
+        assert zip_timesteps(best) == 512  # the next evaluation, the final one, wrote best/
     _, ts, _, _ = read_eval_history(run / "eval")
     assert max(ts) <= zip_timesteps(run / "model.zip")
 
@@ -413,3 +412,46 @@ def test_the_worker_is_the_default_only_where_it_pays():
     short = load_config(DEFAULT_CONFIG)
     short.eval_freq = 1024  # over before the worker has started
     assert not eval_worker_pays(short, 10**6, None)
+
+
+def test_a_run_shorter_than_eval_freq_ends_with_a_held_out_evaluation(tmp_path, capsys):
+    """n_timesteps below eval_freq: the evaluation at step 0 is followed by one at the last
+    step, in the history files, in TensorBoard and in `train --json`'s last_evaluation; its
+    figures are those of the saved model.zip evaluated afresh (the report's own episode runner
+    on the same scenario and seed), so it records the model training left."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from mpa_gym.agents.evaluation.evaluate import evaluate
+
+    run = tmp_path / "run"
+    code = main(["train", "--config", str(tiny_config(tmp_path, 256, eval_freq=10_000)),
+                 "--run-dir", str(run), "--no-progress", "--no-eval-worker", "--json"])
+    assert code == 0
+    last = json.loads(capsys.readouterr().out)["last_evaluation"]
+    steps = zip_timesteps(run / "model.zip")
+    assert steps >= 256 and last["timesteps"] == steps
+    hist, ts, _, _ = read_eval_history(run / "eval")
+    assert ts == [0, steps] and [h["timesteps"] for h in hist] == ts and hist[-1] == last
+    events = EventAccumulator(str(next((run / "tb").glob("PPO_*")))).Reload()
+    logged = events.Scalars("eval/ev/position_rmse_mm")
+    assert [e.step for e in logged][-1] == steps
+    cfg = load_config(run / "config.yaml")
+    again = evaluate([f"{run}:alone"], [EV], cfg.eval_seed)["results"]["ev"]["run (alone)"]
+    for key in ("position_rmse_mm", "stiffness_rmse_pct", "return"):
+        # float32 tensorboard scalars aside, the same episode: equal to rounding
+        np.testing.assert_allclose(last["scenarios"]["ev"][key], again[key], rtol=1e-9)
+    np.testing.assert_allclose(logged[-1].value, again["position_rmse_mm"], rtol=1e-6)
+
+
+def test_the_final_evaluation_in_the_worker_is_the_training_processes(tmp_path):
+    """With the evaluation worker, the final evaluation (as the one at step 0) runs there on a
+    snapshot of the model as training left it: the same figures as in the training process."""
+    runs = []
+    for where in ("worker", "process"):
+        (tmp_path / where).mkdir()
+        runs.append(train(tiny_config(tmp_path / where, 256, eval_freq=10_000),
+                          tmp_path / where / "run", progress=False,
+                          eval_worker=where == "worker"))
+    hw, hp = (read_eval_history(r / "eval")[0] for r in runs)
+    assert [h["timesteps"] for h in hw] == [0, zip_timesteps(runs[0] / "model.zip")]
+    assert hw == hp

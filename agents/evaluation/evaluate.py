@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
+import numpy as np
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
@@ -71,12 +72,14 @@ from mpa_gym.agents.evaluation.seeds import (
     aggregate,
     group_label,
     group_runs,
+    iqm_ci,
     learning_curves,
     plot_curves,
     require_stats,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
+    ALONE_LABEL,
     builds_per_scenario,
     is_user_spec,
     load_policy,
@@ -84,7 +87,7 @@ from mpa_gym.agents.learned.policies import (
     spec_label,
     with_alone,
 )
-from mpa_gym.agents.learned.runs import read_eval_history
+from mpa_gym.agents.learned.runs import read_eval_history, run_files
 from mpa_gym.agents.worker import Worker, WorkerStopped
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
@@ -146,6 +149,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
 
     report["no_harm"] = no_harm(report["results"], report.get("robustness"),
                                 [spec_label(p) for p in policies if p not in BASELINES])
+    report["summary"] = summary(report)
     return report
 
 
@@ -194,6 +198,7 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
                             if isinstance(pol, Supervised)},
             "stages": {spec_label(p): [s.controller for s in cfg.supervisor.stages]
                        for p, (pol, _, cfg) in learned.items() if isinstance(pol, Supervised)},
+            "kinds": {spec_label(p): controller_kind(p, learned) for p in policies},
             "groups": seed_groups(groups, results)}
 
 
@@ -251,6 +256,203 @@ def seed_groups(groups: list[list[str]], results: dict[str, Any]) -> dict[str, A
     return out
 
 
+# What drove a report row (``report["kinds"]``): a classical baseline, a run folder under its
+# supervisor, the same run's policy without it (``RUN_DIR:alone``), a run without a supervisor,
+# any other controller
+KINDS = {"baseline": "baseline", "supervised": "supervised (policy + fallback)",
+         "alone": "the policy alone", "policy": "the policy (no supervisor)",
+         "controller": "controller"}
+
+
+def controller_kind(spec: str, learned: dict[str, Any]) -> str:
+    """``spec``'s key of :data:`KINDS` (``learned``: the loaded run folders, spec → (policy, env
+    id, config))."""
+    if spec in BASELINES:
+        return "baseline"
+    run, supervised = run_of(spec)
+    if run is None:
+        return "controller"
+    if not supervised:
+        return "alone"
+    if spec in learned and isinstance(learned[spec][0], Supervised):
+        return "supervised"
+    return "policy"
+
+
+# The report's scenario groups, each summarised by its best controller: the paper's scenarios
+# and the held-out plants; any other scenario evaluated falls in OTHER_GROUP.
+SCENARIO_GROUPS = {"paper": ("the paper's scenarios", PAPER_SCENARIOS),
+                   "held_out": ("held-out plants", HELDOUT_SCENARIOS)}
+OTHER_GROUP = ("other", "other scenarios")
+# the robustness sweep's combined-effect levels, when the report has the sweep
+LEVELS_GROUP = ("levels", "robustness levels")
+SUMMARY_METRICS = ("position_rmse_mm", "stiffness_rmse_pct")
+# [mm] means closer than this are a tie (equal to the three decimals the report prints): the
+# best is then one that drove all its own steps, not a supervised loop whose fallback drove
+# most of them to its fallback's figure
+SUMMARY_TIE_MM = 5e-4
+
+
+def scenario_groups(names: list[str]) -> dict[str, dict[str, Any]]:
+    """The groups of :data:`SCENARIO_GROUPS` (then :data:`OTHER_GROUP`) among the scenario
+    ``names`` of a report: ``{key: {"title": ..., "scenarios": [...]}}``, empty groups left
+    out."""
+    out = {key: {"title": title, "scenarios": [n for n in names if n in members]}
+           for key, (title, members) in SCENARIO_GROUPS.items()}
+    grouped = {n for _, members in SCENARIO_GROUPS.values() for n in members}
+    out[OTHER_GROUP[0]] = {"title": OTHER_GROUP[1],
+                           "scenarios": [n for n in names if n not in grouped]}
+    return {k: v for k, v in out.items() if v["scenarios"]}
+
+
+def summary(report: dict[str, Any]) -> dict[str, Any]:
+    """The report's summary: per scenario group (:func:`scenario_groups`) and controller the mean
+    of each of ``SUMMARY_METRICS`` over the group's scenarios, and the best controller (lowest
+    mean position RMSE among those whose episodes all ran to the end; within
+    ``SUMMARY_TIE_MM`` of it, one in whose episodes no fallback took over comes first). With
+    the robustness sweep, its levels are one more group (:data:`LEVELS_GROUP`: position RMSE
+    only; a terminated cell has none).
+
+    Several runs of one config (``report["groups"]``) are one row: each run's mean over the
+    group's scenarios, then their interquartile mean and its 95 % stratified-bootstrap CI
+    (``<metric>_ci``; rliable, :func:`mpa_gym.agents.evaluation.seeds.iqm_ci`). Each row says
+    who drove: its kind (:data:`KINDS`), in how many of its episodes a supervisor's fallback
+    took over (``fallback_episodes``) and the share of steps the learned policy drove."""
+    res = report["results"]
+    seed = report.get("groups") or {}
+    kinds = report.get("kinds") or {}
+    in_group = {r for g in seed.values() for r in g["runs"]}
+    rows = {c: [c] for c in next(iter(res.values())) if c not in in_group}
+    rows.update({g: v["runs"] for g, v in seed.items()})
+    sgroups = scenario_groups(list(res))
+    tables = {key: (res, SUMMARY_METRICS) for key in sgroups}  # where a group's figures are
+    levels = (report.get("robustness") or {}).get("levels") or {}
+    if levels:  # the sweep's levels: position only (the sweep measures no stiffness)
+        sgroups[LEVELS_GROUP[0]] = {"title": LEVELS_GROUP[1], "scenarios": list(levels)}
+        tables[LEVELS_GROUP[0]] = (levels, ("position_rmse_mm",))
+    columns = [(key, metric) for key in sgroups for metric in tables[key][1]]
+    out: dict[str, Any] = {key: {**grp, "controllers": {}} for key, grp in sgroups.items()}
+    for row, labels in rows.items():
+        # each run's mean over each group's scenarios, for every (group, metric): runs × columns;
+        # NaN where an episode has no figure (a terminated sweep cell)
+        means = np.array([[np.mean([np.nan if tables[key][0][sc][lab].get(metric) is None
+                                    else tables[key][0][sc][lab][metric]
+                                    for sc in sgroups[key]["scenarios"]])
+                           for key, metric in columns] for lab in labels])
+        point, ci = means[0], np.full((2, len(columns)), np.nan)
+        finite = np.all(np.isfinite(means), axis=0)
+        if len(labels) > 1:  # one bootstrap for all the row's columns that have figures
+            point = np.full(len(columns), np.nan)
+            if finite.any():
+                point[finite], ci[:, finite] = iqm_ci(means[:, finite])
+        for key, grp in sgroups.items():
+            table, metrics = tables[key]
+            per = [table[sc][lab] for lab in labels for sc in grp["scenarios"]]
+            entry: dict[str, Any] = {
+                "kind": kinds.get(labels[0], "controller"), "n_runs": len(labels),
+                "episodes": len(per), "terminated": sum(bool(m["terminated"]) for m in per),
+                "fallback_episodes": sum(m.get("fallback_s") is not None for m in per),
+                "policy_share": float(np.mean([m.get("policy_share", 1.0) for m in per]))}
+            for metric in metrics:
+                j = columns.index((key, metric))
+                entry[metric] = float(point[j]) if finite[j] else None
+                if len(labels) > 1 and finite[j]:
+                    entry[f"{metric}_ci"] = [float(ci[0, j]), float(ci[1, j])]
+            if len(labels) > 1:
+                entry["runs"] = labels
+            out[key]["controllers"][row] = entry
+    for grp in out.values():
+        ok = {r: e["position_rmse_mm"] for r, e in grp["controllers"].items()
+              if not e["terminated"] and e["position_rmse_mm"] is not None}
+        if not ok:
+            grp["best"] = None
+            continue
+        low = min(ok.values())
+        tied = [r for r, v in ok.items() if v <= low + SUMMARY_TIE_MM]
+        own = [r for r in tied if not grp["controllers"][r]["fallback_episodes"]]
+        grp["best"] = min(own or tied, key=ok.get)
+    return {"metrics": list(SUMMARY_METRICS), "groups": out}
+
+
+def who_drove_text(entry: dict[str, Any]) -> str:
+    """A summary row's who-drove cell, e.g. ``supervised (policy + fallback) ‡: a fallback took
+    over in 2 of 8 episodes; the policy drove 91 % of steps``."""
+    text = KINDS.get(entry["kind"], entry["kind"])
+    if entry["fallback_episodes"]:
+        text += (f" ‡: a fallback took over in {entry['fallback_episodes']} of "
+                 f"{entry['episodes']} episodes; the policy drove "
+                 f"{entry['policy_share'] * 100:.0f} % of steps")
+    elif entry["kind"] == "supervised":
+        text += ": the policy drove every step"
+    if entry["n_runs"] > 1:
+        text += f" (IQM over {entry['n_runs']} runs)"
+    return text
+
+
+def summary_cell(entry: dict[str, Any], metric: str, fmt: str) -> str:
+    """``0.123`` or, for several runs, ``0.123 [0.100, 0.150]``; ``(k terminated)`` after;
+    ``–`` where the group has no such figure (the sweep's stiffness, a terminated cell)."""
+    cell = "–" if entry.get(metric) is None else f"{entry[metric]:{fmt}}"
+    if f"{metric}_ci" in entry:
+        lo, hi = entry[f"{metric}_ci"]
+        cell += f" [{lo:{fmt}}, {hi:{fmt}}]"
+    if entry["terminated"]:
+        cell += f" ({entry['terminated']} of {entry['episodes']} terminated)"
+    return cell
+
+
+def summary_markdown(summ: dict[str, Any]) -> list[str]:
+    """The report's first section: the best controller per scenario group, then every
+    controller's means per group."""
+    groups = summ["groups"]
+    out = ["## Summary", "",
+           "Per scenario group: the mean over its scenarios of each controller's position RMSE "
+           "and stiffness RMSE (last three periods); best: the lowest mean position RMSE among "
+           "controllers none of whose episodes terminated (a tie, within "
+           f"{SUMMARY_TIE_MM:g} mm, goes to a controller that drove all its steps itself). "
+           "Several runs of one config are one "
+           "row: the interquartile mean over the runs of their means, and its 95 % "
+           "stratified-bootstrap confidence interval [low, high] (rliable). Who drove: "
+           "`(alone)` is a run's policy without its supervisor, its own figures; ‡ marks a "
+           "supervised row in which a fallback took over: its figures are the supervised "
+           "loop's, not the policy's.", "",
+           "| scenario group | best | position RMSE [mm] | stiffness RMSE [% of k̂] | "
+           "who drove |", "|---|---|---|---|---|"]
+    for g in groups.values():
+        title = f"{g['title']} ({len(g['scenarios'])})"
+        best = g["best"]
+        if best is None:
+            out.append(f"| {title} | none: every controller terminated somewhere | – | – | – |")
+            continue
+        e = g["controllers"][best]
+        who = who_drove_text(e)
+        alone = best + ALONE_LABEL
+        if e["fallback_episodes"] and alone in g["controllers"]:
+            a = g["controllers"][alone]
+            who += (f"; the policy alone, {alone}: "
+                    f"{summary_cell(a, 'position_rmse_mm', '.3f')} mm")
+        out.append(f"| {title} | **{best}{' ‡' if e['fallback_episodes'] else ''}** | "
+                   f"{summary_cell(e, 'position_rmse_mm', '.3f')} | "
+                   f"{summary_cell(e, 'stiffness_rmse_pct', '.2f')} | {who} |")
+    out += ["", "| controller | who drove | " + " | ".join(
+        f"{g['title']}: position [mm] | {g['title']}: stiffness [%]" for g in groups.values())
+        + " |", "|---|---|" + "---|---|" * len(groups)]
+    rows = next(iter(groups.values()))["controllers"]
+    for row, first in rows.items():
+        cells = []
+        for g in groups.values():
+            e = g["controllers"][row]
+            star = "**" if g["best"] == row else ""
+            took = (f" ‡ fallback in {e['fallback_episodes']} of {e['episodes']}"
+                    if e["fallback_episodes"] else "")
+            cells += [f"{star}{summary_cell(e, 'position_rmse_mm', '.3f')}{star}{took}",
+                      summary_cell(e, "stiffness_rmse_pct", ".2f")]
+        kind = KINDS.get(first["kind"], first["kind"]) + (
+            f" (IQM over {first['n_runs']} runs)" if first["n_runs"] > 1 else "")
+        out.append(f"| {row} | {kind} | " + " | ".join(cells) + " |")
+    return [*out, ""]
+
+
 def learning_speed(policies: list[str], results: dict[str, Any], scenario: str = "heldout_b"
                    ) -> dict[str, Any]:
     """For each run folder: the env steps its held-out evaluations took to reach the
@@ -291,8 +493,12 @@ def tuned_on(spec: str, gains: Gains | None = None) -> str:
         policy, _, cfg = load_policy(str(run), supervised=False)
         rnd = load_scenario(cfg.env_kwargs.get("scenario", "nominal")).randomize
         steps = getattr(getattr(policy, "model", None), "num_timesteps", cfg.n_timesteps)
+        zoo = run_files(run).zoo_args is not None
         return (f"PPO, {steps} env steps on the training scenario of its config "
                 f"(randomize: {rnd.describe()})"
+                + ("; trained by rl-baselines3-zoo (its config.yml and args.yml), which "
+                   "ignores the config's mpa_gym section: no supervisor, not anchored at rest"
+                   if zoo else "")
                 + ("" if supervised or cfg.supervisor is None else
                    "; evaluated alone, without its config's supervisor"))
     return "–"
@@ -316,10 +522,12 @@ def markdown(report: dict[str, Any]) -> str:
     stages = report.get("stages") or {}
     in_group = {r for g in groups.values() for r in g["runs"]}
     ctrls = [c for c in next(iter(res.values())) if c not in in_group]
-    out = ["# Evaluation report", "",
-           f"Episode seed {report['seed']}; metrics over the last three reference periods; "
-           "saturation over the whole episode; recovery: time after the impulse until "
-           f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm."]
+    out = ["# Evaluation report", ""]
+    if report.get("summary"):
+        out += summary_markdown(report["summary"])
+    out += [f"Episode seed {report['seed']}; metrics over the last three reference periods; "
+            "saturation over the whole episode; recovery: time after the impulse until "
+            f"|X − X̂| stays below {RECOVERY_BAND_M * 1e3:g} mm."]
     if groups:
         out.append("Several runs of one config are one column: the interquartile mean over "
                    "the runs and its 95 % stratified-bootstrap confidence interval [low, high] "
@@ -402,7 +610,7 @@ def markdown(report: dict[str, Any]) -> str:
 
 def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
                     stages: dict[str, list[str]] | None = None) -> Figure:
-    """One scenario's figure: X vs X̂, the error X − X̂ [mm] in a panel of its own, k vs k̂ and
+    """One scenario's figure: X vs X̂ [mm], the error X − X̂ [mm] in a panel of its own, k vs k̂ and
     both pressures for every controller; a vertical line in every panel, in the controller's
     colour, where a supervised controller's fallback (dashed) and last resort (dotted) took over,
     labelled in the error panel (``stages``: the supervisor's controllers, ``report["stages"]``)."""
@@ -414,11 +622,11 @@ def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
     fig.subplots_adjust(left=0.09, right=0.98, bottom=0.05, top=0.96, hspace=0.12)
     ax = fig.subplots(5, 1, sharex=True)
     first = next(iter(per_ctrl.values()))
-    ax[0].plot(first.t, first.x_ref, "k--", lw=1, label="X̂")
+    ax[0].plot(first.t, first.x_ref * 1e3, "k--", lw=1, label="X̂")
     ax[2].plot(first.t, first.k_ref, "k--", lw=1, label="k̂")
     for i, (name, tr) in enumerate(per_ctrl.items()):
         c = f"C{i}"
-        ax[0].plot(tr.t, tr.x, color=c, lw=1, label=name)
+        ax[0].plot(tr.t, tr.x * 1e3, color=c, lw=1, label=name)
         ax[1].plot(tr.t, (tr.x - tr.x_ref) * 1e3, color=c, lw=1, label=name)
         ax[2].plot(tr.t, tr.k, color=c, lw=1, label=name)
         ax[3].plot(tr.t, tr.pressure_bar[:, 0], color=c, lw=1, label=name)
@@ -432,7 +640,7 @@ def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
             for a in ax:
                 a.axvline(t, color=c, ls=ls, lw=1.2,
                           label=f"{name}: {who} from {t:.1f} s" if a is ax[1] else None)
-    ax[0].set(ylabel="X [m]", title=f"scenario {sc}")
+    ax[0].set(ylabel="X [mm]", title=f"scenario {sc}")
     ax[1].set(ylabel="X − X̂ [mm]")
     ax[2].set(ylabel="k [N/m]")
     ax[3].set(ylabel="P'_e [bar]")
@@ -470,7 +678,8 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "controllers": report.get("controllers", {}),
             "supervisors": report.get("supervisors", {}),
             "stages": report.get("stages", {}),
-            "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {})}
+            "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {}),
+            "kinds": report.get("kinds", {}), "summary": report.get("summary", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
     if report.get("robustness"):
         data["robustness"] = _finite(report["robustness"])

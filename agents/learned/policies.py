@@ -27,11 +27,11 @@ from mpa_gym.agents.controllers.baselines import BASELINES, Policy, make_baselin
 from mpa_gym.agents.controllers.excite import ExcitePolicy
 from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import Supervised
-from mpa_gym.agents.learned.config import TrainConfig, load_config
+from mpa_gym.agents.learned.config import TrainConfig
 from mpa_gym.agents.learned.episodic import Episodic, ObservationCheck
 from mpa_gym.agents.learned.frontend import ActionSpec, FeatureSpec, Frontend
 from mpa_gym.agents.learned.inference import DeployedPolicy
-from mpa_gym.agents.learned.runs import legacy_objects
+from mpa_gym.agents.learned.runs import legacy_objects, read_run_config, run_files
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import DamagedFileError
 from mpa_gym.model.params import DEFAULT_PARAMS
@@ -41,9 +41,6 @@ from mpa_gym.task.plan import make_plan
 
 ALONE = ":alone"  # a run folder's spec suffix: its policy without its supervisor
 ALONE_LABEL = " (alone)"  # what reports append to the run's name for it
-# a run folder's models (``which``): the model file and its normaliser's
-RUN_MODELS = {"final": ("model.zip", "vecnormalize.pkl"),
-              "best": ("best/best_model.zip", "best/vecnormalize.pkl")}
 USER_SPEC = re.compile(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*")  # module:Class, your own controller
 
 
@@ -71,8 +68,8 @@ def has_supervisor(spec: str) -> bool:
     """Whether ``spec`` is a run folder (as given, not ``:alone``) whose config has a
     ``supervisor`` section."""
     run, supervised = run_of(spec)
-    return (run is not None and supervised and (run / "config.yaml").is_file()
-            and load_config(run / "config.yaml").supervisor is not None)
+    return (run is not None and supervised and run_files(run).config.is_file()
+            and read_run_config(run).supervisor is not None)
 
 
 def with_alone(specs: list[str]) -> list[str]:
@@ -229,7 +226,9 @@ class LearnedPolicy(Episodic):
 
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
-    """(policy, config) of a run folder: the learned policy alone, never its supervisor.
+    """(policy, config) of a run folder: the learned policy alone, never its supervisor; a
+    folder of ``mpa-gym train`` or of rl-baselines3-zoo (``mpa_gym.agents.learned.runs``:
+    ``run_files``, ``read_run_config``).
 
     :func:`load_policy` is the loader (supervised as the config says, or not); this is its
     step that reads the model. ``which``: the ``final`` model or the ``best`` one;
@@ -238,11 +237,10 @@ def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
     is read once per process for as long as the run's files are unchanged (a report loads a
     run for every batch it runs); each call returns a policy of its own around it, so the
     episode state one caller leaves in it (``Episodic``) is no other caller's."""
-    if which not in RUN_MODELS:
-        raise ValueError(f"which={which!r} must be one of {sorted(RUN_MODELS)}")
     run = Path(run_dir)
-    files = ("config.yaml", *RUN_MODELS[which])
-    stamp = tuple(_stamp(run / name) for name in files)
+    files = run_files(run, which)
+    stamp = tuple(_stamp(path) for path in (files.config, files.model, files.normalizer,
+                                            files.zoo_args) if path is not None)
     if not deployed and stamp[1] is not None:
         shared, cfg = _load_learned(str(run.resolve()), which, stamp)
         policy = copy.copy(shared)
@@ -274,8 +272,9 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     torch.set_num_threads(1)
 
     run = Path(run_dir)
-    cfg = load_config(run / "config.yaml")
-    model_path, norm_path = (run / name for name in RUN_MODELS[which])
+    files = run_files(run, which)
+    cfg = read_run_config(run)
+    model_path = files.model
     if not model_path.is_file():
         raise FileNotFoundError(f"{model_path} not found: is {run} a finished run folder?")
     try:
@@ -283,6 +282,7 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
     except Exception as e:  # a truncated zip, a foreign file: zipfile, pickle, torch errors
         raise DamagedFileError(f"{model_path} is damaged ({type(e).__name__}: {e})") from None
     norm = None
+    norm_path = files.normalizer
     if cfg.normalize:
         if not norm_path.is_file():
             raise FileNotFoundError(f"{norm_path} not found (the run normalises observations)")
@@ -298,6 +298,9 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         return DeployedPolicy.from_learned(
             policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
     return policy, cfg
+
+
+SCHEDULES = ("learning_rate", "lr_schedule", "clip_range", "clip_range_vf")
 
 
 class SavedModel:
@@ -319,8 +322,11 @@ class SavedModel:
     def load(cls, path: str | Path) -> SavedModel:
         from stable_baselines3.common.save_util import load_from_zip_file
 
-        data, params, _ = load_from_zip_file(path, device="cpu",
-                                             custom_objects=legacy_objects(Path(path)))
+        # the optimiser's schedules are not read for inference; rl-baselines3-zoo pickles them
+        # as classes of rl_zoo3, which need not be installed where its run is evaluated
+        skip = dict.fromkeys(SCHEDULES, 0.0)
+        data, params, _ = load_from_zip_file(path, device="cpu", custom_objects={
+            **legacy_objects(Path(path)), **skip})
         if data is None or "policy" not in params:
             raise ValueError("not a saved SB3 model (no data or no policy weights)")
         kwargs = {**data.get("policy_kwargs", {}), "optimizer_class": _NoOptimizer}
@@ -488,8 +494,8 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
     run, as_given = run_of(spec)
     if run is not None:
         dt = ((env_kwargs or {}).get("task") or {}).get("dt_s")
-        if dt is not None and (run / "config.yaml").is_file():
-            check_control_period(load_config(run / "config.yaml"), dt, run)
+        if dt is not None and run_files(run).config.is_file():
+            check_control_period(read_run_config(run), dt, run)
         policy, cfg = load_run(run, which, deployed)
         if getattr(policy, "features", None) is not None and policy.features.delay_observation:
             plant = load_scenario((env_kwargs or {}).get("scenario", "nominal")).plant

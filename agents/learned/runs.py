@@ -7,6 +7,13 @@ and, written last, ``ppo_<N>_steps.json``: the step count and the files' sizes, 
 checkpoint with its marker is complete), ``eval/evaluations.{npz,json}`` (the held-out
 evaluations during training), ``best/`` and ``tb/``. Every file is written atomically
 (``mpa_gym.files``): a kill leaves the old complete file or the new one.
+
+A folder written by rl-baselines3-zoo (``python -m rl_zoo3.train --algo ppo --env ENV
+--gym-packages mpa_gym -conf configs/ppo_residual.yaml`` writes ``logs/ppo/ENV_1/``) loads too:
+it holds ``ENV.zip`` (the final model), ``best_model.zip`` (its evaluations' best, if any) and
+``ENV/`` with ``config.yml`` (the hyper-parameters it trained with), ``args.yml`` (its command
+line) and ``vecnormalize.pkl``. :func:`run_files` says where a folder keeps each file and
+:func:`read_run_config` rebuilds the training config of either (:func:`zoo_config`).
 """
 
 from __future__ import annotations
@@ -18,14 +25,22 @@ import pickle
 import zipfile
 from collections.abc import Callable
 from contextlib import AbstractContextManager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from mpa_gym.agents.learned.config import load_config
+from mpa_gym.agents.learned.config import (
+    ENV_IDS,
+    ConfigError,
+    TrainConfig,
+    load_config,
+    parse_config,
+)
 from mpa_gym.agents.learned.episodic import ObservationCheck
-from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text
+from mpa_gym.files import DamagedFileError, atomic_save, atomic_write_text, read_yaml
 
 EVAL_JSON, EVAL_NPZ = "evaluations.json", "evaluations.npz"
 # the app's modules before 0.2.0, when it was a top-level ``agents`` package, and where they are
@@ -68,6 +83,93 @@ def legacy_objects(path: Path) -> dict[str, Any]:
         if any(m.encode() in raw for m in LEGACY_MODULES):
             out[key] = _CurrentModules(io.BytesIO(raw)).load()
     return out
+
+
+CONFIG = "config.yaml"  # mpa-gym train's resolved config
+ZOO_CONFIG, ZOO_ARGS = "config.yml", "args.yml"  # rl-baselines3-zoo's, in the folder ENV/
+
+
+@dataclass(frozen=True)
+class RunFiles:
+    """Where a run folder keeps what the loaders read (module docstring): ``mpa-gym train``'s
+    layout, or rl-baselines3-zoo's (``zoo_args``: its ``args.yml``; None for ours)."""
+
+    config: Path
+    model: Path
+    normalizer: Path
+    zoo_args: Path | None = None
+
+
+def run_files(run: str | Path, which: str = "final") -> RunFiles:
+    """The files of run folder ``run``'s ``final`` model or its ``best`` one. Raises
+    ConfigError (naming both layouts) for a folder that is neither."""
+    run = Path(run)
+    if which not in ("final", "best"):
+        raise ValueError(f"which={which!r} must be one of ['best', 'final']")
+    if (run / CONFIG).is_file() or not run.is_dir():
+        if which == "final":
+            return RunFiles(run / CONFIG, run / "model.zip", run / "vecnormalize.pkl")
+        return RunFiles(run / CONFIG, run / "best" / "best_model.zip",
+                        run / "best" / "vecnormalize.pkl")
+    zoo = sorted(p.parent for p in run.glob(f"*/{ZOO_CONFIG}") if p.parent.name in ENV_IDS)
+    if len(zoo) != 1:
+        found = f"; it holds {[str(p.relative_to(run)) for p in zoo]}" if zoo else ""
+        raise ConfigError(f"{run} is not a run folder: it holds neither {CONFIG} (mpa-gym "
+                          f"train) nor one ENV/{ZOO_CONFIG} with ENV in {list(ENV_IDS)} "
+                          f"(rl-baselines3-zoo){found}")
+    params = zoo[0]
+    model = run / (f"{params.name}.zip" if which == "final" else "best_model.zip")
+    return RunFiles(params / ZOO_CONFIG, model, params / "vecnormalize.pkl", params / ZOO_ARGS)
+
+
+class _ZooLoader(yaml.SafeLoader):
+    """YAML's safe loader plus the one Python tag rl-baselines3-zoo writes: its config.yml and
+    args.yml are ``yaml.dump`` of an ``OrderedDict``, read here as a plain dict of its pairs
+    (no other object is built from the file)."""
+
+
+def _ordered_dict(loader: yaml.SafeLoader, node: yaml.Node) -> dict[Any, Any]:
+    (pairs,) = loader.construct_sequence(node, deep=True)
+    return {k: v for k, v in pairs}
+
+
+_ZooLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict",
+                           _ordered_dict)
+
+
+def zoo_config(files: RunFiles) -> TrainConfig:
+    """The training config of an rl-baselines3-zoo run, rebuilt as rl-zoo used it: the
+    hyper-parameters of its ``config.yml`` (the env's section of the config file, with its
+    wrappers), ``env_kwargs`` from the command line (``args.yml``) where the file gave none,
+    the command line's ``-n`` (``n_timesteps``) where it was given, and its seed. rl-zoo
+    ignores the file's ``mpa_gym`` section, so the run has no supervisor and its policy is
+    SB3's plain ``MlpPolicy`` (not anchored at rest): it is evaluated as the policy alone."""
+    assert files.zoo_args is not None
+    where = f"{files.config} (an rl-baselines3-zoo run)"
+    hp = read_yaml(files.config, "rl-zoo config", ConfigError, loader=_ZooLoader)
+    args = read_yaml(files.zoo_args, "rl-zoo args", ConfigError, loader=_ZooLoader)
+    if not isinstance(hp, dict) or not isinstance(args, dict):
+        raise ConfigError(f"{where}: config.yml and args.yml must each hold a mapping")
+    env_id = args.get("env", files.config.parent.name)
+    if env_id != files.config.parent.name:
+        raise ConfigError(f"{files.zoo_args}: env={env_id!r} but its folder is "
+                          f"{files.config.parent.name!r}")
+    hp = dict(hp)
+    if hp.get("env_kwargs") is None and args.get("env_kwargs"):
+        hp["env_kwargs"] = args["env_kwargs"]
+    if isinstance(args.get("n_timesteps"), int) and args["n_timesteps"] > 0:
+        hp["n_timesteps"] = args["n_timesteps"]
+    harness: dict[str, Any] = {}
+    seed = args.get("seed")
+    if isinstance(seed, int) and 0 <= seed <= 2**31 - 1:  # rl-zoo draws up to 2**32 - 2
+        harness["seed"] = seed
+    return parse_config({env_id: hp, "mpa_gym": harness}, where)
+
+
+def read_run_config(run: str | Path) -> TrainConfig:
+    """The training config of run folder ``run``, of either layout (:func:`run_files`)."""
+    files = run_files(run)
+    return load_config(files.config) if files.zoo_args is None else zoo_config(files)
 
 
 # how a model is prepared while it is written: training passes

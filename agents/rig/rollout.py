@@ -59,6 +59,9 @@ from mpa_gym.model.params import BAR, check_range
 from mpa_gym.task.config import END_STOPS_M
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
+PREFLIGHT_TOLERANCE_BAR = 0.2  # [bar] the low-pressure test's allowed |measured − commanded|
+PREFLIGHT_MAX_V_MPS = 0.5  # [m/s] the encoder's speed of a leg at rest, at most
+
 
 def preflight(env: HardwareLegEnv, test_bar: float = 0.5, hold_s: float = 0.3,
               link_timeout_s: float = 2.0) -> dict[str, Any]:
@@ -77,14 +80,14 @@ def preflight(env: HardwareLegEnv, test_bar: float = 0.5, hold_s: float = 0.3,
         env.poll(0.05)
     t = env.telemetry
     lo, hi = END_STOPS_M
-    if not (lo <= t.x_m <= hi and math.isfinite(t.v_mps) and abs(t.v_mps) < 0.5):
+    if not (lo <= t.x_m <= hi and math.isfinite(t.v_mps) and abs(t.v_mps) < PREFLIGHT_MAX_V_MPS):
         raise HardwareFault(f"pre-flight: implausible encoder reading X = {t.x_m:.4f} m, V = "
                             f"{t.v_mps:.3f} m/s (expected X in [{lo}, {hi}] m, the end stops, "
-                            "|V| < 0.5 m/s)")
+                            f"|V| < {PREFLIGHT_MAX_V_MPS:g} m/s)")
     tel = env.hold(test_bar, test_bar, hold_s)  # both MPAs at a low pressure
     env.vent()
     p = np.array([tel.pe_Pa, tel.pf_Pa]) / BAR
-    if np.any(np.abs(p - test_bar) > 0.2):
+    if np.any(np.abs(p - test_bar) > PREFLIGHT_TOLERANCE_BAR):
         raise HardwareFault(f"pre-flight: low-pressure test commanded {test_bar} bar, measured "
                             f"({p[0]:.2f}, {p[1]:.2f}) bar: check supply and regulators")
     return {"x_m": t.x_m, "v_mps": t.v_mps, "test_pressure_bar": p.tolist()}

@@ -158,7 +158,8 @@ class HeldOutEval(EvalCallback):
 
     With ``worker`` the evaluations run in an ``EvalWorker`` while training goes on: each is
     recorded (history, TensorBoard, ``best/``) when its result arrives, in order, the last one
-    at the end of training; ``best/`` gets the model as it was at the evaluation's step."""
+    at the end of training; ``best/`` gets the model as it was at the evaluation's step.
+    :meth:`final` adds the evaluation at the last step once training has reached its budget."""
 
     def __init__(self, cfg: TrainConfig, run_dir: Path, eval_freq_calls: int,
                  on_evaluation: Callable[[dict[str, Any]], bool] | None = None,
@@ -210,6 +211,30 @@ class HeldOutEval(EvalCallback):
             self._collect()
             self.logger.dump(self.num_timesteps)  # no rollout end follows to write its scalars
 
+    @property
+    def stopped_training(self) -> bool:
+        """Whether ``on_evaluation`` asked training to stop (tuning's pruner)."""
+        return not self._go_on
+
+    def final(self) -> dict[str, Any] | None:
+        """The held-out evaluation of the model as training left it, recorded like the periodic
+        ones (history, TensorBoard, ``best/``), unless one was made at its step; returns the
+        last entry of the history (None without scenarios). Called once ``learn`` has returned
+        with a finite model, so that a run shorter than ``eval_freq`` is evaluated at its end
+        and not only at step 0."""
+        if not self.scenarios:
+            return None
+        if self._pending is not None:
+            self._collect()
+        steps = int(self.model.num_timesteps)
+        if not self.evaluations_timesteps or self.evaluations_timesteps[-1] != steps:
+            self.num_timesteps = steps
+            self._evaluate()
+            if self._pending is not None:
+                self._collect()
+            self.logger.dump(steps)
+        return self.history[-1]
+
     def close(self, wait: bool = True) -> None:
         """Record the evaluation still under way (``wait``; else drop it) and stop the worker."""
         if self._worker is None:
@@ -233,8 +258,9 @@ class HeldOutEval(EvalCallback):
                 def live() -> None:
                     save_state(self.model, folder / "best_model.zip", folder / "vecnormalize.pkl",
                                prepare=rest_for_save)
-            self._record(int(self.num_timesteps),
-                         held_out_metrics(self.cfg, self.scenarios, self.model, norm), live)
+            with rest_for_save(self.model):  # the policy as best/ and model.zip save it
+                results = held_out_metrics(self.cfg, self.scenarios, self.model, norm)
+            self._record(int(self.num_timesteps), results, live)
             return
         if self._pending is not None:  # evaluations are recorded in order
             self._collect()
@@ -250,7 +276,8 @@ class HeldOutEval(EvalCallback):
                 atomic_save(folder / "best_model.zip", lambda f: f.write(model_bytes))
                 if norm_bytes is not None:
                     atomic_save(folder / "vecnormalize.pkl", lambda f: f.write(norm_bytes))
-        snap = EvalWorker.snapshot(self.model, norm)
+        with rest_for_save(self.model):  # the policy as best/ and model.zip save it
+            snap = EvalWorker.snapshot(self.model, norm)
         self._pending = (int(self.num_timesteps), snap, self._worker.evaluate(snap), saved)
 
     def _collect(self) -> None:

@@ -19,6 +19,11 @@ Nothing is lost and nothing rewinds silently:
   a plain ``--resume`` after a kill trains to the budget the run was started with;
 - a model with a non-finite weight (NaN guard, after every PPO update including the last) stops
   training and is never saved: ``model.zip`` and the checkpoints keep the last finite state.
+
+A run that reaches its budget ends with a held-out evaluation at its last step (unless a
+periodic one fell there), after ``model.zip`` is saved, recorded like the periodic ones
+(``eval/evaluations.{json,npz}``, TensorBoard, ``best/``): ``mpa-gym train`` prints it as
+``last_evaluation``.
 """
 
 from __future__ import annotations
@@ -333,6 +338,10 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
             finally:
                 if model_is_finite(model):  # Ctrl-C, SIGTERM or an error: keep what was learned
                     save_final(model, run, prepare=rest_for_save)
+        if stop.requested is None and not held_out.stopped_training:
+            # the budget is reached and model.zip saved: the held-out evaluation at the last
+            # step (a signal now interrupts it and loses nothing already written)
+            held_out.final()
     except KeyboardInterrupt:  # a second Ctrl-C: nobody waits for the evaluation under way
         held_out.close(wait=False)
         raise

@@ -106,7 +106,9 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
       scenario's), `"kmax"`, `"kmin"`, a constant in N/m, or `{"t_s": [...], "k_N_per_m": [...]}`;
       a list of these draws one design per episode (e.g. `[null, kmax, kmin]` for training).
     - `task`: a `TaskConfig` or dict (dt_s, episode_s, p_max_bar, slew_bar_per_s, bounds, reward).
-    - `render_mode`: `"rgb_array"` or `"human"`.
+    - `render_mode`: `"rgb_array"` or `"human"`; one frame per control period, and
+      `metadata["render_fps"]` is the control rate 1 / `task.dt_s`, so videos
+      (`gymnasium.wrappers.RecordVideo`) and the window play at real time.
 
     `reset(options={"plant": {...}, "initial_state": {"x_m": .., "v_mps": ..}})` fixes any plant
     field (e.g. `{"mass_kg": 4.2}`) or the start for that episode. `options={"homing": True}`
@@ -123,8 +125,11 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
     - v0: initial version.
     """
 
+    # one frame per control period: ``render_fps`` is the control rate, 1 / ``task.dt_s`` (each
+    # instance sets its own), so a video written with it (``gymnasium.wrappers.RecordVideo``) or
+    # the human window plays at real time
     metadata: ClassVar[dict[str, Any]] = {"render_modes": ["human", "rgb_array"],
-                                          "render_fps": 50}
+                                          "render_fps": 1.0 / TaskConfig.dt_s}
     residual = False
 
     def __init__(
@@ -139,6 +144,7 @@ class MPALegEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"render_mode={render_mode!r} must be one of "
                              f"{self.metadata['render_modes']} or None")
         self.cfg = task_config(task)
+        self.metadata = {**self.metadata, "render_fps": 1.0 / self.cfg.dt_s}
         self.engine = SimEngine(make_plans(scenario, stiffness, self.cfg, params), 1,
                                 self.residual, params)
         self.action_space = action_space()

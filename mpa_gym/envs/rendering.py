@@ -70,15 +70,15 @@ class LegRenderer:
         [0, p_max_bar].
     human : bool
         Open a window (``pygame.display.set_mode``) and show every frame at ``fps``.
-    fps : int
-        Frame rate of the window in human mode.
+    fps : float
+        [1/s] Frame rate of the window in human mode (the envs pass their control rate).
     width, height : int
         [px] Frame size. The scale is fixed, ``min(height / 1.0 m, width / 0.8 m)`` px per m
         (600 px/m for the default 480 x 600), so the picture does not move with X; the frame
         shows heights from −0.025 m to 0.975 m.
     """
 
-    def __init__(self, params: Params, p_max_bar: float, human: bool = False, fps: int = 50,
+    def __init__(self, params: Params, p_max_bar: float, human: bool = False, fps: float = 50.0,
                  width: int = 480, height: int = 600) -> None:
         try:
             import pygame
@@ -92,7 +92,7 @@ class LegRenderer:
         self.params = params
         self.p_max_bar = check_range("p_max_bar", p_max_bar, 0.0, low_open=True, unit="bar")
         self.human = bool(human)
-        self.fps = int(check_range("fps", fps, 0.0, low_open=True, unit="1/s"))
+        self.fps = float(check_range("fps", fps, 0.0, low_open=True, unit="1/s"))
         self.width = int(check_range("width", width, 64, unit="px"))
         self.height = int(check_range("height", height, 64, unit="px"))
         self.scale = min(self.height / VIEW_HEIGHT_M, self.width / VIEW_WIDTH_M)  # [px/m]

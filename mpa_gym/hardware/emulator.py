@@ -28,6 +28,11 @@ from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task.config import END_STOPS_M
 
+TELEMETRY_PERIOD_S = 0.001  # [s] the emulator streams telemetry at 1 kHz
+# [s] it vents after this long without a command: within 50 ms of the last one even when its
+# own loop is a few ms late (docs/firmware.md)
+WATCHDOG_S = 0.04
+
 
 @dataclass(frozen=True)
 class LinkFaults:
@@ -70,8 +75,9 @@ class Emulator:
     """The rig on one end of a link (``link`` has send / recv(timeout_s) / close)."""
 
     def __init__(self, link: Any, scenario: Any = "nominal", params: Params = DEFAULT_PARAMS,
-                 faults: LinkFaults | None = None, telemetry_period_s: float = 0.001,
-                 watchdog_s: float = 0.04, seed: int = 0, lockstep_dt_s: float | None = None,
+                 faults: LinkFaults | None = None,
+                 telemetry_period_s: float = TELEMETRY_PERIOD_S, watchdog_s: float = WATCHDOG_S,
+                 seed: int = 0, lockstep_dt_s: float | None = None,
                  initial_state: tuple[float, float, float, float] | None = None) -> None:
         check_range("telemetry_period_s", telemetry_period_s, 1e-4, 0.1, unit="s")
         check_range("watchdog_s", watchdog_s, 1e-3, 10.0, unit="s")
