@@ -100,3 +100,23 @@ def test_calibrate_refuses_what_is_not_a_run(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "calibrate",
                           str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2 and "is not a run folder" in out.stderr
+
+
+def test_the_hand_over_rate_is_a_training_metric(tmp_path):
+    # each held-out evaluation of a supervised run records, beside the policy alone's figures,
+    # when the supervised policy's fallback took over on each scenario, as evaluate finds it on
+    # the saved model, and the share of scenarios with a hand-over
+    from mpa_gym.agents.evaluation.evaluate import evaluate
+    from mpa_gym.agents.training.train import train
+
+    def held_out(cfg):
+        cfg["mpa_gym"]["eval_scenarios"] = ["heldout_a", "load_1kg"]
+
+    run = train(tiny_config(tmp_path, held_out), tmp_path / "run", progress=False)
+    last = json.loads((run / "eval" / "evaluations.json").read_text())[-1]
+    scen = last["scenarios"]
+    got = [scen[s]["supervised_fallback_s"] for s in ("heldout_a", "load_1kg")]
+    assert last["hand_over_rate"] == np.mean([g is not None for g in got])
+    res = evaluate([str(run)], ["heldout_a", "load_1kg"], robustness=False)["results"]
+    for s, g in zip(("heldout_a", "load_1kg"), got, strict=True):
+        assert res[s]["run"]["fallback_s"] == g

@@ -24,7 +24,7 @@ from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.agents.learned.config import (
     TrainConfig,
 )
-from mpa_gym.agents.learned.policies import LearnedPolicy
+from mpa_gym.agents.learned.policies import LearnedPolicy, supervise
 from mpa_gym.agents.learned.runs import (
     read_eval_history,
     save_state,
@@ -67,14 +67,24 @@ class TrackingMetrics(BaseCallback):
 
 def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normalizer: Any
                      ) -> list[tuple[dict[str, Any], int]]:
-    """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario:
-    all at once, one batched policy call per step
-    (``mpa_gym.agents.evaluation.episodes.run_episodes``)."""
+    """(metrics, episode length) of ``model``'s deterministic episode on each held-out scenario,
+    the policy alone: all at once, one batched policy call per step
+    (``mpa_gym.agents.evaluation.episodes.run_episodes``). With a ``supervisor`` in the config
+    the supervised policy runs beside it, and each scenario's metrics say when its fallback
+    took over (``supervised_fallback_s``, None: it did not): the hand-over rate is a training
+    metric (``eval/hand_over_rate``)."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
     task = eval_task(cfg)
-    traces = run_episodes([Job(sc, policy, cfg.env_id, task) for sc in scenarios], cfg.eval_seed)
-    return [(metrics(tr, sc.reference.period, None), len(tr.t))
-            for sc, tr in zip(scenarios, traces, strict=True)]
+    jobs = [Job(sc, policy, cfg.env_id, task) for sc in scenarios]
+    if cfg.supervisor is not None:
+        jobs += [Job(sc, supervise(policy, cfg, {"scenario": sc}), cfg.env_id, task)
+                 for sc in scenarios]
+    traces = run_episodes(jobs, cfg.eval_seed)
+    out = [(metrics(tr, sc.reference.period, None), len(tr.t))
+           for sc, tr in zip(scenarios, traces, strict=False)]
+    for sc, (m, _), tr in zip(scenarios, out, traces[len(scenarios):], strict=False):
+        m["supervised_fallback_s"] = metrics(tr, sc.reference.period, None)["fallback_s"]
+    return out
 
 
 class _PolicyOnly:
@@ -310,6 +320,11 @@ class HeldOutEval(EvalCallback):
             self.logger.record(f"eval/{sc.name}/stiffness_err_pct", m["stiffness_rmse_pct"])
         mean_ret = float(np.mean(returns))
         self.logger.record("eval/mean_reward", mean_ret)
+        handed = [m["supervised_fallback_s"] is not None for m, _ in results
+                  if "supervised_fallback_s" in m]
+        if handed:  # the share of held-out episodes the supervisor took from the policy
+            entry["hand_over_rate"] = float(np.mean(handed))
+            self.logger.record("eval/hand_over_rate", entry["hand_over_rate"])
         self.evaluations_timesteps.append(steps)
         self.evaluations_results.append(returns)
         self.evaluations_length.append([n for _, n in results])
