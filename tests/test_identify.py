@@ -10,6 +10,7 @@ import math
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -20,6 +21,8 @@ import mpa_gym
 import mpa_gym.agents.rig.rollout
 from mpa_gym.agents.controllers.excite import ExciteConfig, ExcitePolicy
 from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.rig.coverage import SCORED, coverage
+from mpa_gym.agents.rig.coverage import show as show_coverage
 from mpa_gym.agents.rig.identify import (
     LogData,
     fit_regulator,
@@ -467,3 +470,31 @@ def test_the_fit_runs_on_the_logged_time_stamps_of_a_stalled_loop(tmp_path):
     even = [{**r, "t_s": 0.01 * (k + 1)} for k, r in enumerate(steps)]
     wrong = fit_regulator(load_log(_write(tmp_path / "even.jsonl", None, even)))
     assert wrong.rmse_bar > 5 * fit.rmse_bar, (wrong.rmse_bar, fit.rmse_bar)
+
+
+@REALTIME
+def test_coverage_over_random_emulated_rigs(tmp_path):
+    """``mpa-gym identify --coverage``, small: two rigs drawn at random from the training ranges
+    (values no fit has seen; seed 1), each excited for 15 s on an emulator process in real time
+    and identified by ``mpa-gym identify`` in a process of its own. The intervals (2 σ) must
+    hold the truth: of the 20 (rig, value) pairs at most one may miss (the 20-rig run of the
+    commit that added this test: CHANGELOG.md, "Identification states what the log allows")."""
+    o = coverage(2, seed=1, episode_s=15.0, jobs=2, folder=tmp_path)
+    assert o["identified"] == 2, show_coverage(o)
+    missed = [(r["rig"], k, r["truth"][k], r["interval"][k]) for r in o["records"]
+              for k in SCORED if not r["covered"][k]]
+    assert len(missed) <= 1, (missed, show_coverage(o))
+    rec = json.loads((tmp_path / "coverage.jsonl").read_text().splitlines()[0])
+    assert set(rec["truth"]) == set(SCORED) and Path(rec["log"]).is_file()
+
+
+def test_coverage_flags_are_checked_before_any_rig(tmp_path):
+    for args, want in ((["--coverage", "0"], "--coverage=0 must be a whole number in [1, 1000]"),
+                       (["--coverage", "2", "--log", "x.jsonl"], "give it without --log"),
+                       (["--coverage", "2", "--episode-s", "5"], "--episode-s=5 s is outside"),
+                       (["--coverage", "2", "--jobs", "0"], "--jobs=0 must be a whole number"),
+                       (["--coverage", "2", "--seed", "-1"], "--seed=-1 must be a whole number")):
+        p = _identify_cli(*args, "--coverage-dir", tmp_path / "cov")
+        assert p.returncode == 2 and want in p.stderr, (args, p.stderr)
+        assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr
+    assert not list((tmp_path / "cov").glob("rig*"))  # no rig was drawn

@@ -8,21 +8,25 @@ perturbations that make every parameter of the plant show in the log:
   plus half a random binary sequence;
 - flexor: a random binary sequence of its own: steps held for a random ``prbs_hold_s`` range, whose
   edges show the regulators' lag and dead time and whose levels load the muscles statically (C1,
-  C2 against the weight).
+  C2 against the weight);
+- both: a slew probe, ``slew_step_bar`` on the extensor and on the flexor the step that cancels
+  its force on the nominal model (so the leg hardly moves: both MPAs stiffen), held
+  ``slew_hold_s`` once every ``slew_every_s``. A regulator's slew limit r shows only on a step
+  larger than r τ (its ramp phase); the ±``amplitude_bar`` steps are too small for most rigs.
 
-Each perturbation is bounded by ``amplitude_bar``. The leg is lightly damped (ζ ≈ 0.05), so a
-sweep through its resonance would swing it by centimetres: a velocity feedback on the extensor,
-−``damping_bar_s_per_m`` · V (bounded by ``amplitude_bar`` too), damps it to ζ ≈ 0.3; it does
-not hide anything from the identification, which uses the measured pressures, whatever set
-them. For the same reason a slow integral of X̂ − X (``centering_bar_per_m_s``, its crossover
-well below the chirp's lowest frequency) takes out the sag of a leg heavier than the model, so
-the excitation runs around the reference; it starts (bumplessly) at the correction the rig's
-homing left: the measured extensor pressure minus the feedforward's at the first step. A
-position guard fades the perturbation out
-(over ``guard_fade_s``) while |X − X̂| exceeds ``guard_m`` and back in once it is below half of
-it, so the leg stays near the reference on any plausible rig; the env's safety layer (slew limit,
-pressure clip, position bounds) still applies on top. The sequence is a function of the seed and
-the step count only, so a rollout is repeatable.
+Each perturbation but the probe is bounded by ``amplitude_bar``. The leg is lightly damped (ζ ≈
+0.05), so a sweep through its resonance would swing it by centimetres: a velocity feedback on
+the extensor, −``damping_bar_s_per_m`` · V (bounded by ``amplitude_bar`` too), damps it to ζ ≈
+0.3; it does not hide anything from the identification, which uses the measured pressures,
+whatever set them. For the same reason a slow integral of X̂ − X (``centering_bar_per_m_s``, its
+crossover well below the chirp's lowest frequency) takes out the sag of a leg heavier than the
+model, so the excitation runs around the reference; it starts (bumplessly) at the correction the
+rig's homing left: the measured extensor pressure minus the feedforward's at the first step. A
+position guard fades the perturbation out (over ``guard_fade_s``) while |X − X̂| exceeds
+``guard_m`` and back in once it is below half of it, so the leg stays near the reference on any
+plausible rig; the env's safety layer (slew limit, pressure clip, position bounds) still applies
+on top. The sequence is a function of the seed and the step count only, so a rollout is
+repeatable.
 """
 
 from __future__ import annotations

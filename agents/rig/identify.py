@@ -3,21 +3,26 @@
 The log of a rollout (best: ``mpa-gym rollout --policy excite``) holds, every control period,
 the pressure command, the measured pressures and the measured hip height. A log appended to by
 several rollouts holds several sessions, each starting with its header: the fit uses one, the
-newest by default (``session``), and its control rate from the header. The fit is split in
-two, each a ``scipy.optimize.least_squares`` problem:
+newest by default (``session``), and its control rate from the header. The log is checked
+first (``episodes_of``): a step without a finite ``x_m``, ``pressure_bar`` or
+``pressure_cmd_bar``, time stamps that do not increase, or a header rate the stamps contradict is
+refused, naming the step; each step's period is the loop's measured ``period_s`` (else the step
+of ``t_s``), so a stalled or jittery loop is fitted as it ran. The fit is split in two, each a
+``scipy.optimize.least_squares`` problem:
 
 1. **Regulator** (lag τ, dead time d, slew limit r, shared by both MPAs): the measured
    pressures against the commands through the regulator of ``RegulatorParams`` (first-order
    lag, rate-limited at r) driven by the command delayed by d (exact solution, the held command
    switching inside a period when d is not a whole number of periods). r shows only where a
-   step exceeds r τ; otherwise it is kept at 0 (unlimited) and the log's lower bound reported.
+   step exceeds r τ (``excite``'s slew probe); otherwise it is kept at 0 (unlimited) and its
+   interval is the log's lower bound or unlimited.
 2. **Mechanics** (total mass m, γ, C1, C2, and the fidelity effects: braid friction ratio μ_b,
    slider Coulomb F_c and viscous c_s friction): the measured positions against Eq. (15) (with
    the friction of ``mpa.force`` and ``dynamics.slider_friction``, through the packed constants
    of ``fast.pack``) driven by the *measured* pressures (linear between samples), so the two
    fits do not trade errors. c_s V and γ (G_e² + G_f²) V both damp the hip: their sum is well
-   determined, their split only through how G_e, G_f vary along the log (the covariance shows
-   it as larger, correlated uncertainties of γ and c_s).
+   determined, their split only through how G_e, G_f vary along the log (the intervals show
+   it as wide, correlated ranges of γ and c_s).
    Prediction error over segments: the log is cut into ``segment_s`` pieces, each simulated from
    its own initial state (X0, V0), which are fitted too. Why segments rather than one simulation
    of the whole log (single shooting): the leg is lightly damped (ζ ≈ 0.05), so over a long
@@ -27,11 +32,19 @@ two, each a ``scipy.optimize.least_squares`` problem:
    any slow drift. Each segment's states touch only its own residuals, so the Jacobian is sparse
    and finite differences cost a handful of simulations.
 
-Uncertainties are the standard deviations of the Gauss–Newton covariance s² (JᵀJ)⁻¹ at the
-solution (the block of the parameters, the segment states marginalised), with s² the residual
-variance; the residuals are correlated in time, so these are lower bounds. The bladder thickness
-t is not identifiable apart from C1 and C2 (the model's rubber term is V_r(t)·(C1 …, C2 …)): it is
-kept at its nominal value and C1, C2 absorb it.
+Intervals (``intervals`` in the report, at ``sigmas``, default 2 σ): what the log allows, not a
+point. The residuals of both fits are correlated in time (model error: a real loop's timing, the
+friction's shape, a segment's drift), so an s² (JᵀJ)⁻¹ covariance, which assumes them independent,
+is many times too narrow. The mechanics' intervals are ± sigmas σ of the sandwich covariance with
+Newey–West scores over ``HAC_WINDOW_S`` (``_std``); the regulator's are profile likelihoods
+(``fit_regulator``), which also span what the samples cannot resolve (a dead time between two
+sampling instants when there is no lag; a slew limit that no step reached: "r ≥ r_min or
+unlimited"), and the dead time's reaches the link's delay below the fit (``link_delay_s``). A
+parameter the log does not identify shows as an interval wider than its value, and is named in
+the notes. The bladder thickness t is not identifiable apart from C1 and C2 (the model's rubber
+term is V_r(t)·(C1 …, C2 …)): it is kept at its nominal value and C1, C2 absorb it (their
+intervals are those at the nominal thickness). ``mpa-gym identify --coverage N``
+(``agents/rig/coverage.py``) checks the intervals against random emulated rigs.
 
 Validation: the last ``holdout`` fraction of the log is left out of both fits; the identified
 model (regulator from the logged commands, then mechanics) is simulated over it from an initial
@@ -340,8 +353,11 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
         return simulate_pressure(d.cmd, d.t_cmd, d.t_meas, d.p[0], theta[0], theta[1],
                                  _slew_Pa(theta[2]), ramp)
 
+    weights = [np.ones((d.x.size, 2)) for d in logs]
+
     def residuals(theta):
-        return np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
+        return np.concatenate([(w * (sim(theta, d) - d.p) / BAR)[1:].ravel()
+                               for d, w in zip(logs, weights, strict=True)])
 
     lo_b, hi_b = np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 10.0])
     # coarse grid first: the cost is piecewise smooth in the dead time (a kink per period)
@@ -350,6 +366,18 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
     best = min(grid, key=lambda th: float(np.sum(residuals(np.array(th)) ** 2)))
     sol = least_squares(residuals, np.array(best, dtype=float), bounds=(lo_b, hi_b),
                         diff_step=1e-3, x_scale=[0.01, 0.01, 0.01])
+    link = max(d.link_s for d in logs)
+    if link > 0.0:
+        # the time stamps are uncertain by about the link's delay: a sample on a fast edge
+        # (slope Ṗ) is uncertain by Ṗ·link on top of the noise, so it counts for less
+        # (effective variance); else the few edge samples, where the slew limit shows, would
+        # fit the loop's timing error as a slew limit, with a confident, wrong interval
+        noise = float(np.std(sol.fun))
+        for i, d in enumerate(logs):
+            slope = np.gradient(d.p / BAR, d.t_meas, axis=0)
+            weights[i] = np.sqrt(noise**2 / (noise**2 + (slope * link) ** 2))
+        sol = least_squares(residuals, sol.x, bounds=(lo_b, hi_b), diff_step=1e-3,
+                            x_scale=[0.01, 0.01, 0.01])
     theta = sol.x.copy()
     sd = _std(sol, _times([np.repeat(np.arange(d.x.size - 1), 2) for d in logs]),
               _lags(logs))
@@ -359,37 +387,51 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
     limit = ssr + sigmas**2 * ssr / sol.fun.size * kappa
 
     def profile(i: int, step: float) -> tuple[float, float]:
-        """The stretch of θ_i around the optimum whose profile cost stays within ``limit``."""
+        """The stretch of θ_i around the optimum whose profile cost stays within ``limit``,
+        to ``step``: steps doubling outward from the optimum until the cost leaves the limit
+        (or θ_i its bound), then halving back onto the crossing. Conservative: each end is the
+        first value found outside, or the bound."""
         free = [j for j in range(3) if j != i]
+
+        def cost(v: float, start: np.ndarray) -> tuple[float, np.ndarray]:
+            th = theta.copy()
+            th[i] = v
+
+            def res(z):
+                th[free] = z
+                return residuals(th)
+
+            z = least_squares(res, start, bounds=(lo_b[free], hi_b[free]), diff_step=1e-3,
+                              x_scale=0.01, max_nfev=50)
+            return float(z.fun @ z.fun), z.x
+
         ends = []
         for sign in (-1.0, 1.0):
-            th, end = theta.copy(), theta[i]
-            while True:
-                v = min(max(th[i] + sign * step, lo_b[i]), hi_b[i])
-                if v == th[i]:
+            inside, start, h = theta[i], theta[free], step
+            outside = None
+            while outside is None:
+                v = min(max(inside + sign * h, lo_b[i]), hi_b[i])
+                if v == inside:
                     break  # at the bound: the interval reaches it
-                th[i] = v
-
-                def res(z, th=th):
-                    full = th.copy()
-                    full[free] = z
-                    return residuals(full)
-
-                z = least_squares(res, th[free], bounds=(lo_b[free], hi_b[free]),
-                                  diff_step=1e-3, x_scale=0.01, max_nfev=50)
-                th[free] = z.x
-                if float(z.fun @ z.fun) > limit:
-                    break
-                end = v
-            # one step on: the profile crossed the limit somewhere inside it
-            ends.append(min(max(end + sign * step, lo_b[i]), hi_b[i]))
+                c, z = cost(v, start)
+                if c > limit:
+                    outside = v
+                else:
+                    inside, start, h = v, z, 2.0 * h
+            while outside is not None and abs(outside - inside) > step:
+                v = 0.5 * (inside + outside)
+                c, z = cost(v, start)
+                if c > limit:
+                    outside = v
+                else:
+                    inside, start = v, z
+            ends.append(inside if outside is None else outside)
         return ends[0], ends[1]
 
     lag, dead, rho = (float(v) for v in theta)
     lag_iv = profile(0, 5e-4)
     dead_iv = profile(1, 2.5e-4)
     rho_iv = profile(2, 2e-3)
-    link = max(d.link_s for d in logs)
     notes = []
     if link > 0.0:
         notes.append(f"pressure_dead_time_s: the interval reaches {link * 1e3:.2f} ms below the "
@@ -415,7 +457,8 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
         "pressure_lag_s": [lag_iv[0], lag_iv[1]],
         "pressure_dead_time_s": [max(0.0, dead_iv[0] - link), dead_iv[1]],
         "pressure_slew_bar_per_s": slew_iv}
-    return RegulatorFit(est, intervals, std, math.sqrt(ssr / sol.fun.size), notes)
+    err = np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
+    return RegulatorFit(est, intervals, std, float(np.sqrt(np.mean(err**2))), notes)
 
 
 # ----------------------------------------------------------------------------- mechanics
@@ -596,7 +639,7 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
              params: Params = DEFAULT_PARAMS, session: int | None = None) -> dict[str, Any]:
     """Fit the plant to a rollout log (module docstring); returns the report of
     ``mpa-gym identify --json``. ``out``: write a scenario YAML (``scenario``'s reference and
-    inputs, the estimate as its plant, ``randomize`` ± ``sigmas`` standard deviations).
+    inputs, the estimate as its plant, ``randomize`` over the intervals at ``sigmas``).
     ``session``: which session of the log to fit (index, negative from the end; default the
     newest with step records): a log appended to by several rollouts holds several."""
     check_range("--holdout", holdout, 0.05, 0.5)
