@@ -348,7 +348,10 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
     log equally well (a flat cost, a zero derivative), and its interval is that whole stretch.
     The log's time stamps are the PC's: the device applied a command, and sampled the pressure
     it reports, up to the link's delay later than they say; the dead time cannot be told from
-    that delay, so its interval reaches ``link_s`` below the profile's (``link_delay_s``)."""
+    that delay, so its interval reaches ``link_s`` below the profile's (``link_delay_s``), and
+    a slew ramp's duration read off the stamps is uncertain by as much (ρ's interval widened by
+    ``link_s`` over the log's largest command step); the samples' jittering age smooths an edge
+    like a lag would, so the lag's interval also reaches ``link_s`` below."""
     def sim(theta, d, ramp=None):
         return simulate_pressure(d.cmd, d.t_cmd, d.t_meas, d.p[0], theta[0], theta[1],
                                  _slew_Pa(theta[2]), ramp)
@@ -432,11 +435,16 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
     lag_iv = profile(0, 5e-4)
     dead_iv = profile(1, 2.5e-4)
     rho_iv = profile(2, 2e-3)
+    # ρ is the ramp's time per bar; its duration, read off the time stamps, is uncertain by the
+    # link's delay, so ρ is by link / (the log's largest command step) either way
+    step = max(float(np.max(np.abs(np.diff(d.cmd, axis=0)))) for d in logs) / BAR
+    if link > 0.0 and step > 0.0:
+        rho_iv = (max(0.0, rho_iv[0] - link / step), rho_iv[1] + link / step)
     notes = []
     if link > 0.0:
-        notes.append(f"pressure_dead_time_s: the interval reaches {link * 1e3:.2f} ms below the "
-                     "fit, the link's delay the log's time stamps do not show (the dead time "
-                     "cannot be told from it)")
+        notes.append(f"pressure_dead_time_s, pressure_lag_s: the intervals reach {link * 1e3:.2f} "
+                     "ms below the fit, the link's delay the log's time stamps do not show "
+                     "(it cannot be told from them); the slew's is widened by as much of a ramp")
     est = {"pressure_lag_s": lag, "pressure_dead_time_s": dead, "pressure_slew_bar_per_s": 0.0}
     std: dict[str, float | None] = {"pressure_lag_s": float(sd[0]),
                                     "pressure_dead_time_s": float(sd[1]),
@@ -444,17 +452,16 @@ def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
     # r = 1/ρ: ρ's interval [a, b] is r in [1/b, 1/a], and a = 0 admits an unlimited regulator
     slew_iv: list[float | None] = [1.0 / rho_iv[1] if rho_iv[1] > 0 else math.inf,
                                    1.0 / rho_iv[0] if rho_iv[0] > 0 else None]
-    if rho_iv[0] > 0.0:  # the profile excludes an unlimited regulator
+    if rho_iv[0] > 0.0:  # the interval excludes an unlimited regulator
         est["pressure_slew_bar_per_s"] = 1.0 / rho
         std["pressure_slew_bar_per_s"] = float(sd[2]) / rho**2  # delta method, r = 1/ρ
     else:
-        step = max(float(np.max(np.abs(np.diff(d.cmd, axis=0)))) for d in logs) / BAR
         notes.append(f"pressure_slew_bar_per_s is kept at 0 (unlimited): no command step of the "
                      f"log reached the slew limit (largest step {step:.3g} bar); the log says "
                      f"r ≥ {slew_iv[0]:.3g} bar/s or unlimited; excite with larger steps "
                      "(excite.slew_step_bar) to identify it")
     intervals: dict[str, list[float | None]] = {
-        "pressure_lag_s": [lag_iv[0], lag_iv[1]],
+        "pressure_lag_s": [max(0.0, lag_iv[0] - link), lag_iv[1]],
         "pressure_dead_time_s": [max(0.0, dead_iv[0] - link), dead_iv[1]],
         "pressure_slew_bar_per_s": slew_iv}
     err = np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
