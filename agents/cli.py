@@ -619,12 +619,41 @@ def show_rollout(o: dict[str, Any]) -> str:
 
 
 def cmd_identify(a: argparse.Namespace) -> dict[str, Any]:
+    if a.coverage is not None:
+        from mpa_gym.agents.rig.coverage import coverage
+
+        if a.log is not None:
+            raise ValueError("--coverage draws its own rigs and logs; give it without --log")
+        if a.coverage_dir is not None:
+            check_out_dir("--coverage-dir", a.coverage_dir)
+        return coverage(a.coverage, a.seed, a.episode_s, a.jobs, a.coverage_dir)
     from mpa_gym.agents.rig.identify import identify
 
-    return identify(a.log, a.out, a.scenario, a.plot, a.holdout, session=a.session)
+    if a.log is None:
+        raise ValueError("--log is required (a rollout log; or --coverage N)")
+    # the outputs, before the fit: a folder, a name matplotlib would extend, an unwritable place
+    plot = a.plot if a.plot is not None else str(Path(a.log).with_suffix(".identify.png"))
+    for flag, path, kinds in (("--out", a.out, (".yaml", ".yml")),
+                              ("--plot", plot, (".png", ".pdf", ".svg"))):
+        if path is None:
+            continue
+        if Path(path).is_dir() or Path(path).suffix.lower() not in kinds:
+            raise ValueError(f"{flag} {path!r} must be a file name ending in "
+                             f"{' or '.join(kinds)}")
+        check_out_dir(flag, str(Path(path).parent))
+        if Path(path).exists():
+            try:
+                Path(path).open("a").close()  # appending changes nothing
+            except OSError as e:
+                raise ValueError(f"{flag} {path!r} cannot be written: {e.strerror}") from None
+    return identify(a.log, a.out, a.scenario, plot, a.holdout, session=a.session)
 
 
 def show_identify(o: dict[str, Any]) -> str:
+    if "coverage" in o:
+        from mpa_gym.agents.rig.coverage import show as show_coverage
+
+        return show_coverage(o)
     from mpa_gym.agents.rig.identify import show
 
     return show(o)
@@ -803,13 +832,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real-time (SCHED_FIFO) priority for the episodes, as far as "
                         "permitted (the timing report says what was granted; the garbage "
                         "collector is off during them in any case)")
-    p = add("identify", "fit the plant (mass, γ, C1, C2, regulator lag and dead time) to a "
-            "rollout log; validate on a held-out stretch", cmd_identify, show_identify)
-    p.add_argument("--log", required=True, metavar="LOG",
+    p = add("identify", "fit the plant (mass, γ, C1, C2, regulator lag, dead time and slew, "
+            "friction) to a rollout log, with intervals; validate on a held-out stretch",
+            cmd_identify, show_identify)
+    p.add_argument("--log", default=None, metavar="LOG",
                    help="a rollout log, best of `mpa-gym rollout --policy excite`")
     p.add_argument("--out", default=None, metavar="FILE.yaml",
                    help="write a scenario whose plant is the estimate and whose randomize "
-                        "spans ±2 σ (for train, evaluate, emulate --scenario)")
+                        "draws from the intervals (for train, evaluate, emulate --scenario)")
     p.add_argument("--scenario", default="nominal", metavar="NAME_OR_YAML",
                    help="reference and inputs of the written scenario, and the nominal values "
                         "the fit starts from (default nominal)")
@@ -820,6 +850,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--session", type=int, default=None, metavar="K",
                    help="which session of the log to fit (index, negative from the end; "
                         "default the newest)")
+    g = p.add_argument_group("coverage check (agents/rig/coverage.py): instead of --log, draw N "
+                             "rigs from the training ranges, excite each on an emulator process "
+                             "in real time, identify, print the share whose intervals hold the "
+                             "truth")
+    g.add_argument("--coverage", type=int, default=None, metavar="N", help="rigs to draw")
+    g.add_argument("--seed", type=int, default=0, help="of the draws (default 0)")
+    g.add_argument("--episode-s", type=float, default=30.0, metavar="S",
+                   help="excitation per rig [s] (default 30; at least 12)")
+    g.add_argument("--jobs", type=int, default=1, metavar="J",
+                   help="rigs at a time (default 1; each needs a core in real time)")
+    g.add_argument("--coverage-dir", default=None, metavar="DIR",
+                   help="logs, fits and coverage.jsonl (default a new temporary folder)")
     p = add("bench", "step rates of the envs beside CartPole-v1 and Pendulum-v1, same run",
             cmd_bench, show_bench)
     p.add_argument("--seconds", type=float, default=1.0, metavar="S",

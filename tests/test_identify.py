@@ -7,8 +7,10 @@ import dataclasses
 import functools
 import json
 import math
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -17,8 +19,10 @@ from conftest import REALTIME
 
 import mpa_gym
 import mpa_gym.agents.rig.rollout
-from mpa_gym.agents.controllers.excite import ExciteConfig
+from mpa_gym.agents.controllers.excite import ExciteConfig, ExcitePolicy
 from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.rig.coverage import SCORED, coverage
+from mpa_gym.agents.rig.coverage import show as show_coverage
 from mpa_gym.agents.rig.identify import (
     LogData,
     fit_regulator,
@@ -74,7 +78,7 @@ def check_estimate(plant, true_mass, true_c1, true_lag, true_dead):
 def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
     out = tmp_path / "rig_id.yaml"
     r = identify(rig_log, out=out, plot=tmp_path / "fit.png")
-    pl, sd = r["plant"], r["uncertainty"]
+    pl = r["plant"]
     check_estimate(pl, TOTAL_MASS, 0.9 * C1, 0.03, 0.02)
     assert r["validation_rmse_m"] <= 1e-3, r["validation_rmse_m"]  # docs/design.md#targets
     # friction: 20 % on the braid ratio and the slider's Coulomb force. Both act as sign(V) times
@@ -85,20 +89,23 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
     assert abs(pl["slider_friction_N"] - 1.5) <= 0.2 * 1.5, pl
     # viscous: c_s V and the MPAs' γ (G_e² + G_f²) V both damp the hip, and G_e² + G_f² varies
     # only 0.12 … 0.14 over the excitation's ± 2 cm, so the log pins their sum at the reference
-    # (5 %; three logs gave 0.1 %, 0.4 % and < 1 %) but splits it between c_s and γ only
-    # loosely: three logs gave c_s 2.47, 3.06 and 1.06 N s/m for 2.0 (their reported σ, 0.16 …
-    # 0.36, understate that spread: correlated residuals), so c_s alone is held to 1.5 N s/m,
-    # which still tells the effect from absent and from double
+    # (5 %; three logs gave 0.1 %, 0.4 % and < 1 %) but not their split: logs of this rig gave
+    # c_s from 0.25 to 3.06 N s/m for 2.0. What the split may be is the intervals' to say (below:
+    # they hold both true values, and are wide)
     kin = kinematics(0.8, DEFAULT_PARAMS.leg, DEFAULT_PARAMS.mpa)
     g2 = kin.Ge ** 2 + kin.Gf ** 2
     hip = pl["slider_viscous_Ns_per_m"] + pl["gamma_Ns_per_m"] * g2
     assert abs(hip - (2.0 + 36.0 * g2)) <= 0.05 * (2.0 + 36.0 * g2), (hip, pl)
-    assert abs(pl["slider_viscous_Ns_per_m"] - 2.0) <= 1.5, (pl, sd)
-    # the 0.2 bar excitation edges never reach 20 bar/s × 30 ms: the slew is kept at 0 and
-    # bounded below, consistently with the truth
-    assert pl["pressure_slew_bar_per_s"] == 0.0 and sd["pressure_slew_bar_per_s"] is None
-    assert r["bounds"]["pressure_slew_bar_per_s"][0] <= 20.0, r["bounds"]
-    assert "(fixed; the log says ≥" in show(r), show(r)
+    # every interval holds the rig's value (the intervals' reason to be; over many random rigs:
+    # test_coverage_over_random_emulated_rigs); the slew's says "≥ r_min or unlimited" where
+    # the probe's steps (0.6 bar against r τ = 0.6 bar) do not show it, else bounds it
+    truth = {**RIG, "mass_kg": TOTAL_MASS}
+    for key in ("mass_kg", "C1_Pa", "pressure_lag_s", "pressure_dead_time_s",
+                "braid_friction_ratio", "slider_friction_N", "slider_viscous_Ns_per_m",
+                "pressure_slew_bar_per_s", "gamma_Ns_per_m"):
+        lo, hi = r["intervals"][key]
+        assert lo <= truth[key] <= (math.inf if hi is None else hi), (key, lo, hi, truth[key])
+    assert "pressure_slew_bar_per_s" in show(r), show(r)
     assert all(v is None or (math.isfinite(v) and v >= 0) for v in r["uncertainty"].values())
     assert (tmp_path / "fit.png").stat().st_size > 10_000
     # the scenario: the estimate as its plant, randomize around it, loadable by every command
@@ -108,7 +115,7 @@ def test_identify_recovers_the_emulated_rig(rig_log, tmp_path):
     assert sc.plant.slider_friction_N == pytest.approx(pl["slider_friction_N"])
     assert sc.plant.braid_friction_ratio == pytest.approx(pl["braid_friction_ratio"])
     for key, lo, hi in sc.randomize.ranges:
-        assert lo <= r["plant"][key] <= hi, key
+        assert lo <= r["plant"][key] <= hi or dict(sc.randomize.p_off).get(key), key
     assert {k for k, _, _ in sc.randomize.ranges} >= {
         "braid_friction_ratio", "slider_friction_N", "slider_viscous_Ns_per_m"}
 
@@ -283,20 +290,45 @@ def test_regulator_fit_recovers_a_slew_limit_and_bounds_it_when_hidden():
         noisy = out + rng.normal(0.0, 1e-3 * BAR, out.shape)  # 1 mbar sensor noise
         return LogData(dt, t_cmd, t_cmd[1:], np.zeros(n), noisy, cmd)
 
-    est, sd, rmse, bounds, notes = fit_regulator([log_of(1.0)])
+    fit = fit_regulator([log_of(1.0)])
+    est = fit.values
     # tolerances: 2 % of the slew, 2 ms (the noise is 1 mbar against 1 bar edges)
     assert est["pressure_slew_bar_per_s"] == pytest.approx(20.0, rel=0.02), est
     assert abs(est["pressure_lag_s"] - 0.03) < 0.002 and abs(est["pressure_dead_time_s"] - 0.025) \
         < 0.002, est
-    assert 0 < sd["pressure_slew_bar_per_s"] < 1.0 and not bounds, (sd, bounds)
-    assert rmse < 1.5e-3, rmse  # [bar] the 1 mbar noise, no model error on top
-    # 0.2 bar edges never reach the limit: not identified, kept at 0 (unlimited), bounded below by
-    # the largest edge over the lag, which the true 20 bar/s respects
-    est, sd, _, bounds, notes = fit_regulator([log_of(0.2)])
-    assert est["pressure_slew_bar_per_s"] == 0.0 and sd["pressure_slew_bar_per_s"] is None
-    assert 5.0 < bounds["pressure_slew_bar_per_s"][0] <= 20.0, bounds
-    assert any("pressure_slew_bar_per_s is kept at 0" in m for m in notes)
-    assert abs(est["pressure_lag_s"] - 0.03) < 0.002, est
+    assert 0 < fit.std["pressure_slew_bar_per_s"] < 1.0, fit.std
+    assert fit.rmse_bar < 1.5e-3, fit.rmse_bar  # [bar] the 1 mbar noise, no model error on top
+    for key, true in (("pressure_slew_bar_per_s", 20.0), ("pressure_lag_s", 0.03),
+                      ("pressure_dead_time_s", 0.025)):
+        lo, hi = fit.intervals[key]
+        assert lo <= true <= hi and hi - lo < 0.2 * true, (key, lo, hi)  # bounded and tight
+    # 0.2 bar edges never reach the limit: not identified, kept at 0 (unlimited), and the
+    # interval says "r ≥ r_min or unlimited", which the true 20 bar/s respects
+    fit = fit_regulator([log_of(0.2)])
+    assert fit.values["pressure_slew_bar_per_s"] == 0.0
+    assert fit.std["pressure_slew_bar_per_s"] is None
+    lo, hi = fit.intervals["pressure_slew_bar_per_s"]
+    assert 5.0 < lo <= 20.0 and hi is None, (lo, hi)
+    assert any("pressure_slew_bar_per_s is kept at 0" in m for m in fit.notes)
+    assert abs(fit.values["pressure_lag_s"] - 0.03) < 0.002, fit.values
+
+
+def test_regulator_intervals_span_what_the_log_cannot_tell_apart():
+    """No lag: a dead time anywhere between two sampling instants fits the log exactly, so the
+    interval is that whole stretch, not a point (a Jacobian sees a zero slope and says ± 0).
+    Commands on a 10 ms grid, no lag, no noise, sample j (at the end of period j) showing
+    command j − 2: every dead time in [20, 30) ms gives these samples."""
+    rng = np.random.default_rng(2)
+    dt, n = 0.01, 600
+    cmd = 3 * BAR + 0.2 * BAR * (rng.random((n, 2)) < 0.5)
+    t_cmd = dt * np.arange(n + 1)
+    cmd[:2] = cmd[0]
+    p = np.array([cmd[max(j - 2, 0)] for j in range(n)])
+    fit = fit_regulator([LogData(dt, t_cmd, t_cmd[1:], np.zeros(n), p, cmd)])
+    lo, hi = fit.intervals["pressure_dead_time_s"]
+    assert lo <= 0.0201 and hi >= 0.0299, (lo, hi)  # the whole window …
+    assert lo >= 0.019 and hi <= 0.031, (lo, hi)  # … and no more (one 0.25 ms profile step)
+    assert fit.intervals["pressure_lag_s"][0] == 0.0
 
 
 def test_excitation_is_bounded_and_repeatable():
@@ -304,10 +336,165 @@ def test_excitation_is_bounded_and_repeatable():
     policy, env_id, _ = load_policy("excite", {"task": {}})
     assert env_id == "MPALegResidual-v0"
     seq = np.array([policy.perturbation_bar(0.01 * k) for k in range(3000)])
-    assert np.all(np.abs(seq) <= cfg.amplitude_bar + 1e-12)
-    assert np.std(seq[:, 0]) > 0.2 * cfg.amplitude_bar  # it does excite
+    t = 0.01 * np.arange(3000)
+    probe = np.fmod(t, cfg.slew_every_s) < cfg.slew_hold_s
+    assert np.all(np.abs(seq[~probe]) <= cfg.amplitude_bar + 1e-12)
+    assert np.std(seq[~probe, 0]) > 0.2 * cfg.amplitude_bar  # it does excite
+    # the slew probe: the extensor up by slew_step_bar, the flexor by what cancels its force
+    # on the nominal model at X̂(0) (checked here against the numpy model, not the kernel)
+    quiet = ExcitePolicy(policy.plan, dataclasses.replace(cfg, amplitude_bar=1e-9))
+    lift = quiet.perturbation_bar(0.0)
+    assert lift[0] == pytest.approx(cfg.slew_step_bar, rel=1e-6), lift
+    assert np.all(np.abs(quiet.perturbation_bar(cfg.slew_hold_s + 0.01)) < 1e-8)
+    p0 = policy.plan.p0
+    f = [dynamics.ground_force(0.8, 0.0, p0[0] + dp[0] * BAR, p0[1] + dp[1] * BAR, DEFAULT_PARAMS)
+         for dp in ((0.0, 0.0), (cfg.slew_step_bar, lift[1]))]
+    assert abs(f[1] - f[0]) < 0.5, f  # [N]: 0.6 bar alone moves it by ~10 N
     policy.reset()
     again = np.array([policy.perturbation_bar(0.01 * k) for k in range(3000)])
     np.testing.assert_array_equal(seq, again)
     with pytest.raises(ValueError, match=r"excite.amplitude_bar=2 bar is outside"):
         ExciteConfig(amplitude_bar=2.0)
+
+
+def _steps(n=1200, dt=0.01, override=None):
+    """Step records of rollout's format (a still leg, constant pressures): enough to fit."""
+    out = []
+    for k in range(n):
+        r = {"episode": 0, "t_s": (k + 1) * dt, "x_m": 0.8, "pressure_bar": [3.0, 0.5],
+             "pressure_cmd_bar": [3.0, 0.5]}
+        out.append({**r, **(override or {}).get(k, {})})
+    return out
+
+
+def _write(path, header, steps):
+    path.write_text("".join(json.dumps(r) + "\n" for r in ([header] if header else []) + steps))
+    return path
+
+
+def _identify_cli(*args):
+    return subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "identify", *map(str, args)],
+                          capture_output=True, text=True)
+
+
+HEADER = {"event": "session", "policy": "excite", "control_hz": 100.0}
+
+
+@pytest.mark.parametrize(("make", "want"), [
+    # a step without pressure_bar (it was a KeyError traceback)
+    (lambda p: _write(p, HEADER, [{k: v for k, v in r.items() if k != "pressure_bar"}
+                                  if i == 7 else r for i, r in enumerate(_steps())]),
+     "step 7 (t_s=0.08) has no pressure_bar"),
+    # NaN and inf (scipy's "Residuals are not finite", no step named)
+    (lambda p: _write(p, HEADER, _steps(override={500: {"x_m": float("nan")}})),
+     "step 500 (t_s=5.01) has x_m=nan"),
+    (lambda p: _write(p, HEADER, _steps(override={3: {"pressure_cmd_bar": [float("inf"), 0.5]}})),
+     "step 3 (t_s=0.04) has pressure_cmd_bar=[inf, 0.5]"),
+    (lambda p: _write(p, HEADER, _steps(override={9: {"pressure_bar": [3.0]}})),
+     "pressure_bar=[3.0]; the fit needs 2 finite numbers"),
+    # shuffled time stamps (fitted garbage, exit 0)
+    (lambda p: _write(p, HEADER, _steps(override={40: {"t_s": 0.2}})),
+     "the time stamps do not increase at step 40 (t_s=0.4 then 0.2)"),
+    # a header's rate the stamps contradict (fitted garbage, exit 0)
+    (lambda p: _write(p, {**HEADER, "control_hz": 50.0}, _steps()),
+     "the session header's control_hz=50.0 disagrees with the time stamps t_s (median step "
+     "0.01 s, i.e. 100 Hz)"),
+])
+def test_a_log_the_fit_cannot_trust_is_refused_naming_the_step(tmp_path, make, want):
+    log = make(tmp_path / "bad.jsonl")
+    p = _identify_cli("--log", log)
+    assert p.returncode == 2, (p.returncode, p.stderr)
+    assert want in p.stderr and p.stderr.count("\n") == 1, p.stderr
+    assert "Traceback" not in p.stderr
+    assert not log.with_suffix(".identify.png").exists()  # refused before the fit
+
+
+def test_outputs_are_checked_before_the_fit(tmp_path):
+    """--plot DIR wrote DIR.png; an unwritable --out failed with exit 1 after the fit. Each is
+    refused (exit 2, the flag named) before the log is read: the log here does not exist, so a
+    refusal that names the output came first."""
+    folder = tmp_path / "plots"
+    folder.mkdir()
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    (tmp_path / "a_file").write_text("x")
+    missing = tmp_path / "no_log.jsonl"
+    cases = [
+        (["--plot", folder], f"--plot {str(folder)!r} must be a file name ending in .png"),
+        (["--plot", tmp_path / "fit"], "must be a file name ending in .png or .pdf or .svg"),
+        (["--out", tmp_path / "rig.txt"], "must be a file name ending in .yaml or .yml"),
+        (["--out", tmp_path / "a_file" / "rig.yaml"], "--out"),
+    ]
+    if os.geteuid() != 0:  # root writes anywhere
+        locked.chmod(0o500)
+        cases.append((["--out", locked / "rig.yaml"], "is not writable"))
+    for args, want in cases:
+        p = _identify_cli("--log", missing, *args)
+        assert p.returncode == 2 and want in p.stderr, (args, p.stderr)
+        assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr
+    assert not (tmp_path / "plots.png").exists()
+    p = _identify_cli("--log", missing, "--plot", tmp_path / "fit.png")
+    assert p.returncode == 2 and "no such file" in p.stderr, p.stderr  # the log, once outputs pass
+
+
+def test_the_fit_runs_on_the_logged_time_stamps_of_a_stalled_loop(tmp_path):
+    """A loop that stalled (periods of 10 ms with 20-40 ms ones at random, as a loaded PC's):
+    its time stamps say so. The regulator (30 ms lag, 25 ms dead time) of the numpy reference
+    (``dynamics.regulator_pressure``) is recovered from the logged stamps; the same records
+    read as evenly spaced are fitted wrong, which is what the stamps are for."""
+    reg = dataclasses.replace(DEFAULT_PARAMS,
+                              regulator=RegulatorParams(lag=0.03, dead_time=0.025, slew=0.0))
+    rng = np.random.default_rng(3)
+    n, h = 1500, 0.0005
+    period = np.where(rng.random(n) < 0.15, rng.choice([0.02, 0.03, 0.04], n), 0.01)
+    t_cmd = np.concatenate([[0.0], np.cumsum(period)])
+    cmd = 3 * BAR + 0.3 * BAR * (rng.random((n, 2)) < 0.5)
+    t_meas = t_cmd[:-1] + 0.01  # the rig reads telemetry a period after the step's start
+    pres, p, t = np.empty((n, 2)), np.full(2, 3 * BAR), 0.0
+    for k in range(n):
+        while t < t_meas[k] - 1e-12:  # the command that left 25 ms ago acts (a 0.5 ms grid)
+            i = np.searchsorted(t_cmd, t - 0.025 + 1e-12, side="right") - 1
+            p = dynamics.regulator_pressure(p, cmd[i] if i >= 0 else np.full(2, 3 * BAR), h, reg)
+            t += h
+        pres[k] = p
+    steps = [{"episode": 0, "t_s": float(t_meas[k]), "x_m": 0.8,
+              "pressure_bar": (pres[k] / BAR).tolist(),
+              "pressure_cmd_bar": (cmd[k] / BAR).tolist()} for k in range(n)]
+    log = _write(tmp_path / "stalled.jsonl", {"event": "session", "control_hz": 100.0}, steps)
+    fit = fit_regulator(load_log(log))
+    # 1 ms: the generation grid is 0.5 ms
+    assert abs(fit.values["pressure_lag_s"] - 0.03) < 0.001, fit.values
+    assert abs(fit.values["pressure_dead_time_s"] - 0.025) < 0.001, fit.values
+    even = [{**r, "t_s": 0.01 * (k + 1)} for k, r in enumerate(steps)]
+    wrong = fit_regulator(load_log(_write(tmp_path / "even.jsonl", None, even)))
+    assert wrong.rmse_bar > 5 * fit.rmse_bar, (wrong.rmse_bar, fit.rmse_bar)
+
+
+@REALTIME
+def test_coverage_over_random_emulated_rigs(tmp_path):
+    """``mpa-gym identify --coverage``, small: the first two rigs of the 20-rig run whose
+    figures CHANGELOG.md gives ("Identification states what the log allows": seed 0, 30 s), drawn
+    at random from the training ranges (values no fit has seen), each excited on an emulator
+    process in real time and identified by ``mpa-gym identify`` in a process of its own. The
+    intervals (2 σ) must hold the truth: of the 20 (rig, value) pairs at most one may miss (that
+    run: 2 of 190). Seed 1's two rigs, both with a 1.9 kg load, miss more (4 of 20: the mass by
+    about 1 g, and C1, C2 where the braid friction is 0.025): a known gap, not tested here."""
+    o = coverage(2, seed=0, episode_s=30.0, jobs=2, folder=tmp_path)
+    assert o["identified"] == 2, show_coverage(o)
+    missed = [(r["rig"], k, r["truth"][k], r["interval"][k]) for r in o["records"]
+              for k in SCORED if not r["covered"][k]]
+    assert len(missed) <= 1, (missed, show_coverage(o))
+    rec = json.loads((tmp_path / "coverage.jsonl").read_text().splitlines()[0])
+    assert set(rec["truth"]) == set(SCORED) and Path(rec["log"]).is_file()
+
+
+def test_coverage_flags_are_checked_before_any_rig(tmp_path):
+    for args, want in ((["--coverage", "0"], "--coverage=0 must be a whole number in [1, 1000]"),
+                       (["--coverage", "2", "--log", "x.jsonl"], "give it without --log"),
+                       (["--coverage", "2", "--episode-s", "5"], "--episode-s=5 s is outside"),
+                       (["--coverage", "2", "--jobs", "0"], "--jobs=0 must be a whole number"),
+                       (["--coverage", "2", "--seed", "-1"], "--seed=-1 must be a whole number")):
+        p = _identify_cli(*args, "--coverage-dir", tmp_path / "cov")
+        assert p.returncode == 2 and want in p.stderr, (args, p.stderr)
+        assert p.stderr.count("\n") == 1 and "Traceback" not in p.stderr, p.stderr
+    assert not list((tmp_path / "cov").glob("rig*"))  # no rig was drawn

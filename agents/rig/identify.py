@@ -3,21 +3,26 @@
 The log of a rollout (best: ``mpa-gym rollout --policy excite``) holds, every control period,
 the pressure command, the measured pressures and the measured hip height. A log appended to by
 several rollouts holds several sessions, each starting with its header: the fit uses one, the
-newest by default (``session``), and its control rate from the header. The fit is split in
-two, each a ``scipy.optimize.least_squares`` problem:
+newest by default (``session``), and its control rate from the header. The log is checked
+first (``episodes_of``): a step without a finite ``x_m``, ``pressure_bar`` or
+``pressure_cmd_bar``, time stamps that do not increase, or a header rate the stamps contradict is
+refused, naming the step; each step's period is the loop's measured ``period_s`` (else the step
+of ``t_s``), so a stalled or jittery loop is fitted as it ran. The fit is split in two, each a
+``scipy.optimize.least_squares`` problem:
 
 1. **Regulator** (lag τ, dead time d, slew limit r, shared by both MPAs): the measured
    pressures against the commands through the regulator of ``RegulatorParams`` (first-order
    lag, rate-limited at r) driven by the command delayed by d (exact solution, the held command
    switching inside a period when d is not a whole number of periods). r shows only where a
-   step exceeds r τ; otherwise it is kept at 0 (unlimited) and the log's lower bound reported.
+   step exceeds r τ (``excite``'s slew probe); otherwise it is kept at 0 (unlimited) and its
+   interval is the log's lower bound or unlimited.
 2. **Mechanics** (total mass m, γ, C1, C2, and the fidelity effects: braid friction ratio μ_b,
    slider Coulomb F_c and viscous c_s friction): the measured positions against Eq. (15) (with
    the friction of ``mpa.force`` and ``dynamics.slider_friction``, through the packed constants
    of ``fast.pack``) driven by the *measured* pressures (linear between samples), so the two
    fits do not trade errors. c_s V and γ (G_e² + G_f²) V both damp the hip: their sum is well
-   determined, their split only through how G_e, G_f vary along the log (the covariance shows
-   it as larger, correlated uncertainties of γ and c_s).
+   determined, their split only through how G_e, G_f vary along the log (the intervals show
+   it as wide, correlated ranges of γ and c_s).
    Prediction error over segments: the log is cut into ``segment_s`` pieces, each simulated from
    its own initial state (X0, V0), which are fitted too. Why segments rather than one simulation
    of the whole log (single shooting): the leg is lightly damped (ζ ≈ 0.05), so over a long
@@ -27,11 +32,19 @@ two, each a ``scipy.optimize.least_squares`` problem:
    any slow drift. Each segment's states touch only its own residuals, so the Jacobian is sparse
    and finite differences cost a handful of simulations.
 
-Uncertainties are the standard deviations of the Gauss–Newton covariance s² (JᵀJ)⁻¹ at the
-solution (the block of the parameters, the segment states marginalised), with s² the residual
-variance; the residuals are correlated in time, so these are lower bounds. The bladder thickness
-t is not identifiable apart from C1 and C2 (the model's rubber term is V_r(t)·(C1 …, C2 …)): it is
-kept at its nominal value and C1, C2 absorb it.
+Intervals (``intervals`` in the report, at ``sigmas``, default 2 σ): what the log allows, not a
+point. The residuals of both fits are correlated in time (model error: a real loop's timing, the
+friction's shape, a segment's drift), so an s² (JᵀJ)⁻¹ covariance, which assumes them independent,
+is many times too narrow. The mechanics' intervals are ± sigmas σ of the sandwich covariance with
+Newey–West scores over ``HAC_WINDOW_S`` (``_std``); the regulator's are profile likelihoods
+(``fit_regulator``), which also span what the samples cannot resolve (a dead time between two
+sampling instants when there is no lag; a slew limit that no step reached: "r ≥ r_min or
+unlimited"), and the dead time's reaches the link's delay below the fit (``link_delay_s``). A
+parameter the log does not identify shows as an interval wider than its value, and is named in
+the notes. The bladder thickness t is not identifiable apart from C1 and C2 (the model's rubber
+term is V_r(t)·(C1 …, C2 …)): it is kept at its nominal value and C1, C2 absorb it (their
+intervals are those at the nominal thickness). ``mpa-gym identify --coverage N``
+(``agents/rig/coverage.py``) checks the intervals against random emulated rigs.
 
 Validation: the last ``holdout`` fraction of the log is left out of both fits; the identified
 model (regulator from the logged commands, then mechanics) is simulated over it from an initial
@@ -55,6 +68,7 @@ from mpa_gym.agents.rig.rollout import read_log
 from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE, Plant, Scenario, load_scenario
 from mpa_gym.model import fast
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
+from mpa_gym.task.config import TaskConfig
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 MECH = ("mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa")  # fitted plant keys, mechanics (scaled)
@@ -63,7 +77,9 @@ MECH = ("mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa")  # fitted plant keys, mec
 FRICTION = (("braid_friction_ratio", 0.01, 0.5), ("slider_friction_N", 1.0, 100.0),
             ("slider_viscous_Ns_per_m", 1.0, 100.0))
 REG = ("pressure_lag_s", "pressure_dead_time_s", "pressure_slew_bar_per_s")  # regulator keys
-MIN_RAMP_S = 0.05  # [s] slew-limited time in the fitted log below which the slew is not identified
+# [s] the span over which the fits' residuals are taken as correlated (``_std``): a segment of
+# the mechanics fit, several regulator time constants
+HAC_WINDOW_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -77,21 +93,25 @@ class LogData:
     x: np.ndarray  # (n,)
     p: np.ndarray  # (n, 2)
     cmd: np.ndarray  # (n, 2)
+    # [s] the link's delay the time stamps do not show (``link_delay_s``; 0: none, a sim's log)
+    link_s: float = 0.0
 
     def part(self, a: int, b: int) -> LogData:
         """Samples a … b − 1."""
         return LogData(self.dt, self.t_cmd[a:b + 1], self.t_meas[a:b], self.x[a:b],
-                       self.p[a:b], self.cmd[a:b])
+                       self.p[a:b], self.cmd[a:b], self.link_s)
 
 
-def _timing(rows: list[dict[str, Any]], dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(command times, measurement times) [s] of a log's steps: from the loop's measured
-    periods (``period_s``, start to start) where the log has them — a late step held its
-    predecessor's command longer — else the nominal ``dt``. A step's telemetry is read at its
-    deadline, a period after its start, or at the next start if that came sooner."""
+def _timing(rows: list[dict[str, Any]], t: np.ndarray, dt: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(command times, measurement times) [s] of a log's steps. A step's period (start to
+    start) is the loop's measured ``period_s`` where the log has it, else the step of the time
+    stamps ``t_s``: a late step (a stall, jitter) held its predecessor's command longer, and
+    the fit must see that rather than the nominal period. A step's telemetry is read at its
+    deadline, a period ``dt`` after its start, or at the next start if that came sooner."""
     n = len(rows)
     period = np.array([r.get("period_s", math.nan) for r in rows], dtype=float)[1:]
-    period = np.where(np.isfinite(period) & (period > 0), period, dt)
+    period = np.where(np.isfinite(period) & (period > 0), period, np.diff(t))
     t_cmd = np.concatenate([[0.0], np.cumsum(period), [0.0]])
     t_cmd[n] = t_cmd[n - 1] + dt
     return t_cmd, np.minimum(t_cmd[:-1] + dt, t_cmd[1:])
@@ -133,7 +153,7 @@ def read_sessions(path: str | Path) -> Sessions:
             header, steps, started = r, [], True
             continue
         started = True
-        if "t_s" in r and "x_m" in r:
+        if "t_s" in r and "event" not in r:
             steps.append(r)
     if started:
         out.append(Session(header, steps))
@@ -161,20 +181,73 @@ def pick_session(sessions: list[Session], session: int | None, path: str | Path
     return i, sessions[i]
 
 
+STEP_KEYS = ("t_s", "x_m", "pressure_bar", "pressure_cmd_bar")  # what the fit reads of a step
+RATE_TOLERANCE = 0.01  # relative disagreement of the header's control_hz and the stamps refused
+
+
+def _column(er: list[dict[str, Any]], key: str, width: int, where: str) -> np.ndarray:
+    """The finite numbers of ``key`` in each step (``width`` per step, 0: a scalar); a step
+    without it, or with a value that is not ``width`` finite numbers, is named."""
+    out = np.full((len(er), max(width, 1)), math.nan)
+    for i, r in enumerate(er):
+        v = r.get(key)
+        try:
+            a = np.asarray(v, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            a = np.empty(0)
+        if a.size == max(width, 1) and np.all(np.isfinite(a)):
+            out[i] = a
+            continue
+        what = "no " + key if key not in r else f"{key}={v!r}"
+        shape = f"{width} finite numbers" if width else "a finite number"
+        raise ValueError(f"--log {where}: step {i} (t_s={r.get('t_s')!r}) has {what}; the "
+                         f"fit needs {shape} there (a rollout log's steps hold "
+                         f"{', '.join(STEP_KEYS)})")
+    return out if width else out[:, 0]
+
+
+def link_delay_s(rows: list[dict[str, Any]]) -> float:
+    """[s] How much later than the log's time stamps say the device may have applied a
+    command and sampled what it reports: the 95th percentile of the loop's measured command
+    latency (``latency_s``: command sent to the telemetry acknowledging it, a round trip that
+    holds both), 0 for a log without it (a simulation's)."""
+    lat = np.array([r.get("latency_s", math.nan) for r in rows], dtype=float)
+    lat = lat[np.isfinite(lat) & (lat >= 0)]
+    return float(np.percentile(lat, 95)) if lat.size else 0.0
+
+
 def episodes_of(s: Session, path: str | Path) -> list[LogData]:
-    """The episodes of one session; the control period is the header's ``control_hz`` (else
-    the median step of ``t_s``)."""
+    """The episodes of one session, checked: every step holds ``STEP_KEYS`` as finite numbers,
+    the time stamps ``t_s`` increase, and the header's ``control_hz`` (the control period; else
+    the median step of ``t_s``) agrees with them within ``RATE_TOLERANCE``. A log that fails
+    is refused with the step that fails, not fitted."""
     rate = (s.header or {}).get("control_hz")
     out = []
     for ep in sorted({r.get("episode", 0) for r in s.steps}):
         er = [r for r in s.steps if r.get("episode", 0) == ep]
-        t = np.array([r["t_s"] for r in er])
+        where = f"{path} episode {ep}"
+        t = _column(er, "t_s", 0, where)
         if t.size < 3:
             continue
-        dt = 1.0 / float(rate) if rate else float(np.median(np.diff(t)))
-        out.append(LogData(dt, *_timing(er, dt), np.array([r["x_m"] for r in er], dtype=float),
-                           np.array([r["pressure_bar"] for r in er], dtype=float) * BAR,
-                           np.array([r["pressure_cmd_bar"] for r in er], dtype=float) * BAR))
+        back = np.flatnonzero(np.diff(t) <= 0.0)
+        if back.size:
+            k = int(back[0]) + 1
+            raise ValueError(f"--log {where}: the time stamps do not increase at step {k} "
+                             f"(t_s={float(t[k - 1])!r} then {float(t[k])!r}); the fit needs "
+                             "the steps in the order they ran (a shuffled or merged log?)")
+        step = float(np.median(np.diff(t)))
+        if rate:
+            dt = 1.0 / float(rate)
+            if abs(step - dt) > RATE_TOLERANCE * dt:
+                raise ValueError(f"--log {where}: the session header's control_hz={rate!r} "
+                                 f"disagrees with the time stamps t_s (median step {step:.6g} "
+                                 f"s, i.e. {1.0 / step:.6g} Hz); the fit needs the rate the "
+                                 "steps ran at")
+        else:
+            dt = step
+        out.append(LogData(dt, *_timing(er, t, dt), _column(er, "x_m", 0, where),
+                           _column(er, "pressure_bar", 2, where) * BAR,
+                           _column(er, "pressure_cmd_bar", 2, where) * BAR, link_delay_s(er)))
     if not out:
         raise ValueError(f"--log {path}: no episode with 3 or more steps")
     return out
@@ -230,60 +303,169 @@ def simulate_pressure(cmd, t_cmd, t_meas, p_start, lag, dead, slew=0.0, ramp=Non
 
 def _slew_Pa(inv_slew: float) -> float:
     """[Pa/s] the slew of its inverse [s/bar] (0: unlimited)."""
-    return BAR / inv_slew if inv_slew > 0.0 else 0.0
+    return BAR / inv_slew if inv_slew > 1e-12 else 0.0
 
 
-def fit_regulator(logs: list[LogData]) -> tuple[dict[str, float], dict[str, float | None],
-                                                  float, dict[str, list[float | None]],
-                                                  list[str]]:
-    """(lag [s], dead time [s], slew [bar/s]), their standard deviations (None: not
-    identified, kept fixed), the pressure RMSE [bar], the bounds [low, high or None] the log puts
-    on a parameter it does not identify, and notes.
+@dataclass(frozen=True)
+class RegulatorFit:
+    """The regulator stage's result (``fit_regulator``)."""
 
-    The slew limit r is fitted as its inverse ρ = 1/r [s/bar], so that "unlimited" (ρ = 0) is an
+    values: dict[str, float]  # REG keys: lag [s], dead time [s], slew [bar/s] (0: unlimited)
+    intervals: dict[str, list[float | None]]  # [low, high]; high None: unbounded (slew)
+    std: dict[str, float | None]  # 1 σ from ``_std`` (None: the slew, not identified)
+    rmse_bar: float  # [bar] pressure RMSE of the fit
+    notes: list[str]
+
+
+def _kappa(r: np.ndarray, lags: int) -> float:
+    """Long-run variance over variance of a residual series (Bartlett weights over ``lags``):
+    how many samples count as one independent one (1 for white residuals)."""
+    r = r - r.mean()
+    v = float(r @ r)
+    if v == 0.0:
+        return 1.0
+    k = 1.0
+    for lag in range(1, min(lags, r.size - 1) + 1):
+        k += 2.0 * (1.0 - lag / (lags + 1.0)) * float(r[lag:] @ r[:-lag]) / v
+    return max(k, 1.0)
+
+
+def fit_regulator(logs: list[LogData], sigmas: float = 2.0) -> RegulatorFit:
+    """Lag τ [s], dead time d [s] and slew r [bar/s] of the regulator, with profile-likelihood
+    intervals at ``sigmas``.
+
+    The slew limit is fitted as its inverse ρ = 1/r [s/bar], so that "unlimited" (ρ = 0) is an
     ordinary point of a smooth cost. It shows in the log only where a command step exceeds r τ
-    (the ramp phase of ``fast.regulator_pressure``); where the fitted model spends less than
-    ``MIN_RAMP_S`` slew-limited the log says only that r ≥ (largest step)/τ, and the slew is
-    reported as fixed at 0 (unlimited)."""
+    (the ramp phase of ``fast.regulator_pressure``); where the log does not rule out an
+    unlimited regulator (ρ's profile interval reaches 0), the slew is reported as 0
+    (unlimited) and its interval says what the log allows: r ≥ a bound, or unlimited.
+
+    Intervals: each parameter's profile (the others refitted) is followed out from the optimum
+    while the sum of squares stays within sigmas² s² κ of its least value, s² the residual
+    variance and κ (``_kappa``) the residuals' long-run variance over their variance, so that
+    correlated residuals count for what they are worth. A profile follows the cost where a
+    Jacobian cannot: with no lag, a dead time anywhere between two sampling instants fits the
+    log equally well (a flat cost, a zero derivative), and its interval is that whole stretch.
+    The log's time stamps are the PC's: the device applied a command, and sampled the pressure
+    it reports, up to the link's delay later than they say; the dead time cannot be told from
+    that delay, so its interval reaches ``link_s`` below the profile's (``link_delay_s``), and
+    a slew ramp's duration read off the stamps is uncertain by as much (ρ's interval widened by
+    ``link_s`` over the log's largest command step); the samples' jittering age smooths an edge
+    like a lag would, so the lag's interval also reaches ``link_s`` below."""
     def sim(theta, d, ramp=None):
         return simulate_pressure(d.cmd, d.t_cmd, d.t_meas, d.p[0], theta[0], theta[1],
                                  _slew_Pa(theta[2]), ramp)
 
-    def residuals(theta):
-        return np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
+    weights = [np.ones((d.x.size, 2)) for d in logs]
 
+    def residuals(theta):
+        return np.concatenate([(w * (sim(theta, d) - d.p) / BAR)[1:].ravel()
+                               for d, w in zip(logs, weights, strict=True)])
+
+    lo_b, hi_b = np.array([0.0, 0.0, 0.0]), np.array([1.0, 1.0, 10.0])
     # coarse grid first: the cost is piecewise smooth in the dead time (a kink per period)
     grid = [(lag, dead, rho) for lag in (0.0, 0.01, 0.02, 0.04, 0.08, 0.16)
             for dead in np.arange(0.0, 0.101, 0.005) for rho in (0.0, 0.02, 0.05, 0.2)]
     best = min(grid, key=lambda th: float(np.sum(residuals(np.array(th)) ** 2)))
-    sol = least_squares(residuals, np.array(best, dtype=float), bounds=([0, 0, 0], [1, 1, 10]),
+    sol = least_squares(residuals, np.array(best, dtype=float), bounds=(lo_b, hi_b),
                         diff_step=1e-3, x_scale=[0.01, 0.01, 0.01])
-    sd = _std(sol)
-    ramp = np.zeros(1)
-    ramped = 0.0
-    for d in logs:
-        sim(sol.x, d, ramp)
-        ramped += ramp[0]
-    lag, dead, rho = (float(v) for v in sol.x)
+    link = max(d.link_s for d in logs)
+    if link > 0.0:
+        # the time stamps are uncertain by about the link's delay: a sample on a fast edge
+        # (slope Ṗ) is uncertain by Ṗ·link on top of the noise, so it counts for less
+        # (effective variance); else the few edge samples, where the slew limit shows, would
+        # fit the loop's timing error as a slew limit, with a confident, wrong interval
+        noise = float(np.std(sol.fun))
+        for i, d in enumerate(logs):
+            slope = np.gradient(d.p / BAR, d.t_meas, axis=0)
+            weights[i] = np.sqrt(noise**2 / (noise**2 + (slope * link) ** 2))
+        sol = least_squares(residuals, sol.x, bounds=(lo_b, hi_b), diff_step=1e-3,
+                            x_scale=[0.01, 0.01, 0.01])
+    theta = sol.x.copy()
+    sd = _std(sol, _times([np.repeat(np.arange(d.x.size - 1), 2) for d in logs]),
+              _lags(logs))
+    ssr = float(sol.fun @ sol.fun)
+    # per channel, so that the two MPAs' interleaved rows do not read as one series
+    kappa = max(_kappa(sol.fun[m::2], _lags(logs)) for m in range(2))
+    limit = ssr + sigmas**2 * ssr / sol.fun.size * kappa
+
+    def profile(i: int, step: float) -> tuple[float, float]:
+        """The stretch of θ_i around the optimum whose profile cost stays within ``limit``,
+        to ``step``: steps doubling outward from the optimum until the cost leaves the limit
+        (or θ_i its bound), then halving back onto the crossing. Conservative: each end is the
+        first value found outside, or the bound."""
+        free = [j for j in range(3) if j != i]
+
+        def cost(v: float, start: np.ndarray) -> tuple[float, np.ndarray]:
+            th = theta.copy()
+            th[i] = v
+
+            def res(z):
+                th[free] = z
+                return residuals(th)
+
+            z = least_squares(res, start, bounds=(lo_b[free], hi_b[free]), diff_step=1e-3,
+                              x_scale=0.01, max_nfev=50)
+            return float(z.fun @ z.fun), z.x
+
+        ends = []
+        for sign in (-1.0, 1.0):
+            inside, start, h = theta[i], theta[free], step
+            outside = None
+            while outside is None:
+                v = min(max(inside + sign * h, lo_b[i]), hi_b[i])
+                if v == inside:
+                    break  # at the bound: the interval reaches it
+                c, z = cost(v, start)
+                if c > limit:
+                    outside = v
+                else:
+                    inside, start, h = v, z, 2.0 * h
+            while outside is not None and abs(outside - inside) > step:
+                v = 0.5 * (inside + outside)
+                c, z = cost(v, start)
+                if c > limit:
+                    outside = v
+                else:
+                    inside, start = v, z
+            ends.append(inside if outside is None else outside)
+        return ends[0], ends[1]
+
+    lag, dead, rho = (float(v) for v in theta)
+    lag_iv = profile(0, 5e-4)
+    dead_iv = profile(1, 2.5e-4)
+    rho_iv = profile(2, 2e-3)
+    # ρ is the ramp's time per bar; its duration, read off the time stamps, is uncertain by the
+    # link's delay, so ρ is by link / (the log's largest command step) either way
+    step = max(float(np.max(np.abs(np.diff(d.cmd, axis=0)))) for d in logs) / BAR
+    if link > 0.0 and step > 0.0:
+        rho_iv = (max(0.0, rho_iv[0] - link / step), rho_iv[1] + link / step)
+    notes = []
+    if link > 0.0:
+        notes.append(f"pressure_dead_time_s, pressure_lag_s: the intervals reach {link * 1e3:.2f} "
+                     "ms below the fit, the link's delay the log's time stamps do not show "
+                     "(it cannot be told from them); the slew's is widened by as much of a ramp")
     est = {"pressure_lag_s": lag, "pressure_dead_time_s": dead, "pressure_slew_bar_per_s": 0.0}
-    unc: dict[str, float | None] = {"pressure_lag_s": float(sd[0]),
+    std: dict[str, float | None] = {"pressure_lag_s": float(sd[0]),
                                     "pressure_dead_time_s": float(sd[1]),
                                     "pressure_slew_bar_per_s": None}
-    notes, bounds = [], {}
-    if ramped >= MIN_RAMP_S and rho > 0.0:
+    # r = 1/ρ: ρ's interval [a, b] is r in [1/b, 1/a], and a = 0 admits an unlimited regulator
+    slew_iv: list[float | None] = [1.0 / rho_iv[1] if rho_iv[1] > 0 else math.inf,
+                                   1.0 / rho_iv[0] if rho_iv[0] > 0 else None]
+    if rho_iv[0] > 0.0:  # the interval excludes an unlimited regulator
         est["pressure_slew_bar_per_s"] = 1.0 / rho
-        unc["pressure_slew_bar_per_s"] = float(sd[2]) / rho**2  # delta method, r = 1/ρ
+        std["pressure_slew_bar_per_s"] = float(sd[2]) / rho**2  # delta method, r = 1/ρ
     else:
-        # no ramp: every step |e| ≤ r τ, so r ≥ max |e| / τ
-        step = max(float(np.max(np.abs(np.diff(d.cmd, axis=0)))) for d in logs) / BAR
-        bound = f"≥ {step / lag:.3g} bar/s" if lag > 0 else "not bounded"
-        if lag > 0:
-            bounds["pressure_slew_bar_per_s"] = [step / lag, None]
         notes.append(f"pressure_slew_bar_per_s is kept at 0 (unlimited): no command step of the "
-                     f"log reached the slew limit (largest step {step:.3g} bar; the log only "
-                     f"says r {bound}); excite with larger steps to identify it")
-        est["pressure_lag_s"], est["pressure_dead_time_s"] = lag, dead
-    return est, unc, float(np.sqrt(np.mean(sol.fun ** 2))), bounds, notes
+                     f"log reached the slew limit (largest step {step:.3g} bar); the log says "
+                     f"r ≥ {slew_iv[0]:.3g} bar/s or unlimited; excite with larger steps "
+                     "(excite.slew_step_bar) to identify it")
+    intervals: dict[str, list[float | None]] = {
+        "pressure_lag_s": [max(0.0, lag_iv[0] - link), lag_iv[1]],
+        "pressure_dead_time_s": [max(0.0, dead_iv[0] - link), dead_iv[1]],
+        "pressure_slew_bar_per_s": slew_iv}
+    err = np.concatenate([((sim(theta, d) - d.p) / BAR)[1:].ravel() for d in logs])
+    return RegulatorFit(est, intervals, std, float(np.sqrt(np.mean(err**2))), notes)
 
 
 # ----------------------------------------------------------------------------- mechanics
@@ -381,19 +563,48 @@ def fit_mechanics(logs: list[LogData], nominal: dict[str, float], segment_s: flo
     x_scale = np.concatenate([np.full(npar, 0.1), np.tile([1e-3, 1e-2], n_states // 2)])
     sol = least_squares(residuals, z0, bounds=(lo, hi), jac_sparsity=sparsity, x_scale=x_scale,
                         method="trf", xtol=1e-10, ftol=1e-10, max_nfev=200)
-    sd = _std(sol)[:npar] * scale
+    sd = _std(sol, _times([np.arange(d.x.size) for d, _, _ in parts]), _lags(logs))[:npar] \
+        * scale
     est = unpack(sol.x)
     return est, dict(zip(keys, (float(v) for v in sd), strict=True)), \
         float(np.sqrt(np.mean(sol.fun ** 2)))
 
 
-def _std(sol: Any) -> np.ndarray:
-    """Standard deviations from the Gauss–Newton covariance s² (JᵀJ)⁻¹ (module docstring)."""
+def _times(per_log: list[np.ndarray]) -> np.ndarray:
+    """The sample index of each residual row over logs placed one after the other."""
+    out, offset = [], 0
+    for t in per_log:
+        out.append(t + offset)
+        offset += int(t[-1]) + 1 if t.size else 0
+    return np.concatenate(out)
+
+
+def _lags(logs: list[LogData]) -> int:
+    """Newey–West lags: ``HAC_WINDOW_S`` in samples."""
+    return max(1, round(HAC_WINDOW_S / min(d.dt for d in logs)))
+
+
+def _std(sol: Any, times: np.ndarray, lags: int) -> np.ndarray:
+    """Standard deviations of the fitted values from the sandwich covariance
+    (JᵀJ)⁻¹ S (JᵀJ)⁻¹, with S the Newey–West estimate (Bartlett weights over ``lags`` samples)
+    of the long-run covariance of the scores g_t = Σ_{rows at sample t} J_row r_row.
+
+    Why not s² (JᵀJ)⁻¹: that assumes independent residuals, and a fit's residuals are anything
+    but (model error: the timing of a real loop, the friction's shape, a segment's drift, are
+    correlated over tens of samples); on emulated rigs it gave intervals ten times too narrow,
+    excluding the true values. The sandwich form holds under residuals correlated over up to
+    ``lags`` samples and still reduces to s² (JᵀJ)⁻¹ for white ones. ``times``: the sample index
+    of each residual row (non-decreasing)."""
     J = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
-    dof = max(1, J.shape[0] - J.shape[1])
-    s2 = 2.0 * sol.cost / dof
-    cov = np.linalg.pinv(J.T @ J) * s2
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    g = J * sol.fun[:, None]
+    G = np.zeros((int(times[-1]) + 1, J.shape[1]))
+    np.add.at(G, times, g)
+    S = G.T @ G
+    for lag in range(1, min(lags, G.shape[0] - 1) + 1):
+        gamma = G[lag:].T @ G[:-lag]
+        S += (1.0 - lag / (lags + 1.0)) * (gamma + gamma.T)
+    A = np.linalg.pinv(J.T @ J)
+    return np.sqrt(np.clip(np.diag(A @ S @ A), 0.0, None))
 
 
 # ----------------------------------------------------------------------------- validation
@@ -435,7 +646,7 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
              params: Params = DEFAULT_PARAMS, session: int | None = None) -> dict[str, Any]:
     """Fit the plant to a rollout log (module docstring); returns the report of
     ``mpa-gym identify --json``. ``out``: write a scenario YAML (``scenario``'s reference and
-    inputs, the estimate as its plant, ``randomize`` ± ``sigmas`` standard deviations).
+    inputs, the estimate as its plant, ``randomize`` over the intervals at ``sigmas``).
     ``session``: which session of the log to fit (index, negative from the end; default the
     newest with step records): a log appended to by several rollouts holds several."""
     check_range("--holdout", holdout, 0.05, 0.5)
@@ -454,24 +665,31 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
     nom_p = base.plant_params(params)
     nominal = {"mass_kg": nom_p.leg.m, "gamma_Ns_per_m": nom_p.mpa.gamma, "C1_Pa": nom_p.mpa.C1,
                "C2_Pa": max(nom_p.mpa.C2, 100.0)}
-    reg, reg_sd, p_rmse, bounds, reg_notes = fit_regulator(fit_logs)
+    reg = fit_regulator(fit_logs, sigmas)
     mech, mech_sd, fit_rmse = fit_mechanics(fit_logs, nominal, segment_s, params=params)
-    values = {**mech, **reg}
-    unc: dict[str, float | None] = {**mech_sd, **reg_sd, "thickness_m": None}
+    values = {**mech, **reg.values}
+    unc: dict[str, float | None] = {**mech_sd, **reg.std, "thickness_m": None}
+    intervals = {**mechanics_intervals(mech, mech_sd, sigmas), **reg.intervals}
     rmse, x_sim, p_sim, k = validate(held, values, settle_s, params)
     plant = {"extra_mass_kg": 0.0, **{k_: float(v) for k_, v in values.items()},
              "thickness_m": float(nom_p.mpa.thickness)}
+    weak = [k_ for k_ in MECH if intervals[k_][1] - intervals[k_][0] > abs(plant[k_])]
     report: dict[str, Any] = {
-        "plant": plant, "uncertainty": unc, "validation_rmse_m": rmse, "bounds": bounds,
-        "scenario_yaml": None, "fit_rmse_m": fit_rmse, "pressure_fit_rmse_bar": p_rmse,
-        "holdout_s": held.x.size * held.dt,
+        "plant": plant, "uncertainty": unc, "intervals": intervals, "sigmas": sigmas,
+        "validation_rmse_m": rmse, "scenario_yaml": None, "fit_rmse_m": fit_rmse,
+        "pressure_fit_rmse_bar": reg.rmse_bar, "holdout_s": held.x.size * held.dt,
         "session": {"index": index, "sessions": len(sessions),
                     **{k: (chosen.header or {}).get(k) for k in ("started_utc", "policy",
                                                                  "control_hz")}},
-        "notes": ["thickness_m is kept nominal: only V_r(t)·C1 and V_r(t)·C2 are identifiable",
-                  "uncertainties are 1 σ of the Gauss-Newton covariance (lower bounds: the "
-                  "residuals are correlated in time)", *reg_notes],
+        "notes": ["thickness_m is kept nominal: only V_r(t)·C1 and V_r(t)·C2 are identifiable "
+                  "(C1_Pa, C2_Pa are the values at the nominal thickness)",
+                  f"intervals: ± {sigmas:g} σ of the sandwich covariance with correlated "
+                  f"residuals (mechanics), the profile likelihood at {sigmas:g} σ (regulator)",
+                  *reg.notes],
     }
+    if weak:
+        report["notes"].append(f"not identified by this log (interval wider than the value): "
+                               f"{', '.join(weak)}")
     report["skipped_lines"] = sessions.skipped
     if sessions.skipped:
         report["notes"].insert(0, f"{sessions.skipped} torn line(s) of the log skipped (a "
@@ -483,7 +701,7 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
         plot = Path(log).with_suffix(".identify.png")
     report["plot"] = str(_plot(held, x_sim, p_sim, k, rmse, Path(plot)))
     if out is not None:
-        report["scenario_yaml"] = str(write_scenario(out, base, plant, unc, sigmas))
+        report["scenario_yaml"] = str(write_scenario(out, base, plant, intervals))
     return report
 
 
@@ -495,27 +713,41 @@ def _describe(s: Session) -> str:
             f"{len(s.steps)} steps")
 
 
-def write_scenario(out: str | Path, base: Scenario, plant: dict[str, float],
-                   unc: dict[str, float | None], sigmas: float) -> Path:
-    """A scenario YAML: ``base``'s reference, inputs and duration, the estimate as the plant,
-    ``randomize`` spanning ± ``sigmas`` standard deviations (inside each field's range)."""
-    import yaml
+def mechanics_intervals(est: dict[str, float], sd: dict[str, float], sigmas: float
+                        ) -> dict[str, list[float | None]]:
+    """[low, high] = estimate ± ``sigmas`` σ, inside each field's allowed range."""
+    out: dict[str, list[float | None]] = {}
+    for key, v in est.items():
+        lo_ok, hi_ok, _, _ = PLANT_RANGES[key]
+        out[key] = [max(v - sigmas * sd[key], lo_ok), min(v + sigmas * sd[key], hi_ok)]
+    return out
 
+
+def write_scenario(out: str | Path, base: Scenario, plant: dict[str, float],
+                   intervals: dict[str, list[float | None]]) -> Path:
+    """A scenario YAML: ``base``'s reference, inputs and duration, the estimate as the plant,
+    ``randomize`` drawing each identified field from its interval (inside the field's range).
+    A slew the log bounds only below (interval [r_min, None]: r ≥ r_min or unlimited) is drawn
+    from [r_min, the task's command slew limit] in half the episodes and left unlimited (the
+    plant's 0) in the others."""
+    import yaml
 
     d = base.to_dict()
     d["name"] = Path(out).stem
     d["description"] = "identified from a rig log (mpa-gym identify)"
     d["plant"] = {**{k: v for k, v in d.get("plant", {}).items()
                      if k not in plant and k not in ("mass_kg",)}, **plant}
-    rnd = {}
-    for key, sd in unc.items():
-        if sd is None or key not in RANDOMIZABLE or not math.isfinite(sd):
+    rnd: dict[str, Any] = {}
+    for key, (lo, hi) in intervals.items():
+        if key not in RANDOMIZABLE:
             continue
         lo_ok, hi_ok, low_open, _ = PLANT_RANGES[key]
-        v = plant[key]
-        lo = max(v - sigmas * sd, lo_ok + (1e-9 * max(abs(v), 1.0) if low_open else 0.0))
-        hi = min(v + sigmas * sd, hi_ok)
-        rnd[key] = [float(lo), float(hi)]
+        lo = max(float(lo), lo_ok + (1e-9 * max(abs(plant[key]), 1.0) if low_open else 0.0))
+        if hi is None:
+            hi = max(lo, TaskConfig().slew_bar_per_s)
+            rnd[key] = {"range": [lo, min(float(hi), hi_ok)], "p_off": 0.5}
+        else:
+            rnd[key] = [lo, max(lo, min(float(hi), hi_ok))]
     d["randomize"] = rnd
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -553,15 +785,14 @@ def _plot(held: LogData, x_sim: np.ndarray, p_sim: np.ndarray, k: int, rmse: flo
 
 
 def show(o: dict[str, Any]) -> str:
-    lines = ["identified plant (± 1 σ):"]
+    lines = [f"identified plant (estimate, interval at {o['sigmas']:g} σ):"]
     for k, v in o["plant"].items():
-        sd = o["uncertainty"].get(k)
-        fixed = ""
-        if sd is None and k in o["uncertainty"]:
-            lo, hi = o.get("bounds", {}).get(k, (None, None))
-            fixed = "  (fixed" + (f"; the log says ≥ {lo:.3g}" if lo is not None else "") + \
-                (f", ≤ {hi:.3g}" if hi is not None else "") + ")"
-        lines.append(f"  {k:<22} {v:12.6g}" + (f"  ± {sd:.3g}" if sd is not None else fixed))
+        iv = o["intervals"].get(k)
+        if iv is None:
+            lines.append(f"  {k:<24} {v:12.6g}  (kept)")
+            continue
+        hi = "unlimited" if iv[1] is None else f"{iv[1]:.6g}"
+        lines.append(f"  {k:<24} {v:12.6g}  [{iv[0]:.6g}, {hi}]")
     lines.append(f"fit: position RMSE {o['fit_rmse_m'] * 1e3:.3f} mm, pressure RMSE "
                  f"{o['pressure_fit_rmse_bar'] * 1e3:.2f} mbar")
     lines.append(f"validation on the held-out {o['holdout_s']:.1f} s: position RMSE "
