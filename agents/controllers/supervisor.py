@@ -66,7 +66,7 @@ from mpa_gym.task.contract import OBS_XREF as OXR
 
 POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages' places in the cascade: who drives
 HAND_OVERS = (("fallback_s", FALLBACK), ("last_resort_s", LAST_RESORT))  # report key, stage
-FALLBACKS = ("pid", "mbfb")  # the flat form's fallbacks (a declared stage names any baseline)
+FALLBACKS = ("pid", "mbfb", "rc")  # the flat form's fallbacks (a declared stage names any baseline)
 # the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
                 "afc": "afc (the feedforward with adaptive feedforward cancellation)"}
