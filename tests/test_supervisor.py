@@ -462,10 +462,13 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"\['arm_periods', 'clip_mm', 'level_mm', 'window_s'\]"),
     ({"stages": [{"controller": "pid", "monitors": ["divergence"]}, {"controller": "ff"}]},
      r"supervisor\.stages\[0\]\.controller='pid': allowed \['policy'\]"),
-    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "ff"}]},
-     r"supervisor\.stages\[1\]\.controller='ff': allowed \['pid', 'mbfb', 'rc'\]"),
-    ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "mbfb"}]},
-     r"supervisor\.stages\[2\]\.controller='mbfb': allowed \['ff', 'afc'\]"),
+    # a later stage names any baseline (mpa-gym calibrate orders them by measurement)
+    ({"stages": [DEFAULT_STAGES_CFG[0], {"controller": "policy"}]},
+     r"supervisor\.stages\[1\]\.controller='policy': allowed \['ff', 'pid', 'mbfb', 'afc', "
+     r"'rc'\]"),
+    ({"stages": [*DEFAULT_STAGES_CFG[:2], {"controller": "nosuch"}]},
+     r"supervisor\.stages\[2\]\.controller='nosuch': allowed \['ff', 'pid', 'mbfb', 'afc', "
+     r"'rc'\]"),
     ({"stages": [{"controller": "policy", "monitors": ["drift"]}, {"controller": "pid"}]},
      r"supervisor\.stages\[0\]\.monitors=\['drift'\]: allowed distinct names of "
      r"supervisor\.monitors \['divergence', 'limit_cycle', 'persistent'\]"),

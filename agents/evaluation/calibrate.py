@@ -48,7 +48,7 @@ from mpa_gym.files import atomic_write_text
 from mpa_gym.model.params import check_range
 
 CALIBRATION_SEED = 2 * EVAL_SEED  # plants and episode seeds: beyond training and evaluation
-CANDIDATES = ("pid", "afc", "mbfb")  # the fallbacks compared
+CANDIDATES = ("pid", "afc", "mbfb", "rc")  # the fallbacks compared
 FAILED_MM = 100.0  # [mm] an unstable or terminated episode's score in the fallback order
 MARGIN = 1.5  # a level is this times the highest RMS on the plants the policy keeps
 FLOOR_MM = 0.3  # [mm] no level below this (sensor noise and quantum are a few hundredths)
