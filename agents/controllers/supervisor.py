@@ -142,7 +142,7 @@ class Divergence(Monitor):
 
     name: ClassVar[str] = "divergence"
     what: ClassVar[str] = "the error's RMS"
-    level_mm: float = 15.0
+    level_mm: float = 40.053
     window_s: float = 0.5
     clip_mm: float | None = None
     arm_periods: int = 0
@@ -157,9 +157,9 @@ class LimitCycle(Monitor):
 
     name: ClassVar[str] = "limit_cycle"
     what: ClassVar[str] = "the RMS of the error's one-period change"
-    level_mm: float = 0.4
+    level_mm: float = 0.68
     window_s: float = 3.0
-    clip_mm: float | None = 0.5
+    clip_mm: float | None = 0.85
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -172,9 +172,9 @@ class Persistent(Monitor):
 
     name: ClassVar[str] = "persistent"
     what: ClassVar[str] = "the error's own RMS"
-    level_mm: float = 2.0
+    level_mm: float = 2.157
     window_s: float = 3.0
-    clip_mm: float | None = 3.0
+    clip_mm: float | None = 3.235
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -210,8 +210,8 @@ class Stage:
 
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
 DEFAULT_STAGES = (Stage("policy", ("divergence", "limit_cycle", "persistent")),
-                  Stage("pid", ("divergence",), GRACE_PERIODS),
-                  Stage("afc"))
+                  Stage("afc", ("divergence",), GRACE_PERIODS),
+                  Stage("pid"))
 # The flat section that run folders written before the cascade was declared hold: its keys and
 # what an omitted one meant then (it is how those runs were evaluated; never change it).
 FLAT_KEYS = {"fallback": "pid", "error_mm": 15.0, "error_window_s": 0.5, "aperiodic_mm": 3.0,
