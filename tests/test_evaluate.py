@@ -159,6 +159,11 @@ def test_groups_and_the_sweep_hold_the_supervised_system_and_the_policy_alone(ru
                                           f" §{m['last_resort_s']:.1f} s")
     assert f"{said} (policy {m['policy_share'] * 100:.0f} %)" in \
         "\n".join(robustness_markdown(rob))
+    # the count of hand-overs per grid: of the supervised run alone (every one of its cells
+    # here), none for the policy alone and a baseline
+    assert rob["grids"]["load"]["hand_overs"] == {"w-s0": 2}
+    assert "**w-s0** (its supervisor handed over on 2 of 2 cells)" in \
+        robustness_markdown(rob)
 
 
 def test_no_harm_audits_the_sweep_of_both(runs):

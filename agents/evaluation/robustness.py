@@ -54,7 +54,13 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episodes,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
-from mpa_gym.agents.learned.policies import load_policy, run_of, spec_label, with_alone
+from mpa_gym.agents.learned.policies import (
+    has_supervisor,
+    load_policy,
+    run_of,
+    spec_label,
+    with_alone,
+)
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
 from mpa_gym.analysis.simulate import METRIC_PERIODS, whole_periods
 
@@ -250,6 +256,9 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
             nc = len(g.col_values)
             entry["controllers"][labels[p]] = [m[r * nc:(r + 1) * nc]
                                                for r in range(len(g.row_values))]
+            if has_supervisor(p):  # the count of hand-overs per grid, for the report
+                entry.setdefault("hand_overs", {})[labels[p]] = sum(
+                    c["fallback_s"] is not None for c in m)
         out["grids"][g.name] = entry
     out["levels_kick"] = dataclasses.asdict(kick)
     for key, plants_by_name, rig in (("levels", levels, LEVEL_RIG), ("kicks", kicks, {})):
@@ -359,7 +368,10 @@ def markdown(rob: dict[str, Any]) -> list[str]:
                 f"{g['base'] or 'nothing else'} per leg and {g['rig'] or 'nothing'} rig-wide.",
                 ""]
         for ctrl, rows in g["controllers"].items():
-            out += [f"**{ctrl}**", "", f"| {rf} \\ {cf} | "
+            n = g.get("hand_overs", {}).get(ctrl)
+            count = ("" if n is None else
+                     f" (its supervisor handed over on {n} of {sum(map(len, rows))} cells)")
+            out += [f"**{ctrl}**{count}", "", f"| {rf} \\ {cf} | "
                     + " | ".join(f"{v:g}" for v in g["cols"]["values"]) + " |",
                     "|---|" + "---|" * len(g["cols"]["values"])]
             for rv, row in zip(g["rows"]["values"], rows, strict=True):
