@@ -5,11 +5,12 @@ slider friction) in real time, applies each pressure command when it arrives plu
 regulator's dead time (to the microsecond, not rounded to a step), through the regulator's slew
 limit and first-order lag, plays the scenario's ``disturbances`` (each impulse's mean force over
 each step, as the sim's plan) on the session clock (plant time since the first command after the
-start or a vent), streams telemetry every ``telemetry_period_s``, and behaves like firmware: when commands stop for
-``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last command even when its
-own loop is a few ms late) it vents both MPAs and raises ``FAULT_WATCHDOG_VENT`` until
-commands resume; a ``Vent`` message vents at once. For tests it injects what real links do:
-latency and jitter on telemetry, dropped, late and corrupt frames, and sensor noise.
+start or a vent), streams telemetry every ``telemetry_period_s``, and behaves like firmware:
+when commands stop for ``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last
+command even when its own loop is a few ms late) it vents both MPAs and raises
+``FAULT_WATCHDOG_VENT`` until commands resume; a ``Vent`` message vents at once. For tests it
+injects what real links do: latency and jitter on telemetry, dropped, late and corrupt frames,
+and sensor noise.
 """
 
 from __future__ import annotations
