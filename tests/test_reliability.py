@@ -137,6 +137,11 @@ SCENARIOS = [
     ({"duration_s": 3, "randomize": {"mass_kg": 3}}, ["mass_kg", "3"]),
     ({"duration_s": 3, "randomize": {"C1_Pa": [1, "x"]}}, ["C1_Pa", "'x'"]),
     ({"duration_s": 3, "randomize": {"pressure_noise_bar": [0, 0.1]}}, ["pressure_noise_bar"]),
+    # in range, but it throws the leg out of the model's domain (was a SimulationError traceback)
+    ({"duration_s": 3, "disturbances": [{"type": "impulse", "t_s": 1, "force_N": -3000,
+                                         "duration_s": 0.05}]},
+     ["disturbances[0]", "force_N=-3000", "left the model's domain"]),
+    ({"duration_s": 3, "plant": {"mass_kg": 50}}, ["plant.mass_kg=50", "left the model's domain"]),
 ]
 # PPO / harness keys for `train --config FILE`: each refused before a run folder exists
 CONFIGS = [
@@ -238,11 +243,55 @@ OTHER = [
      ["ftp://x"]),
     (["bench", "--seconds", "0"], ["--seconds", "0"]),
     (["bench", "--sizes", "0"], ["--sizes", "0"]),
+    # issue 34: refused before work, naming the flag (were tracebacks, silent or unclear)
+    (["simulate", "--scenario", "nominal", "--dt", "100"], ["--dt=100", "[0.0001, 0.1]"]),
+    (["simulate", "--scenario", "nominal", "--dt", "1e-9"], ["--dt=1e-09"]),
+    (["analyze", "--stiffness-const", "1e12"], ["--stiffness-const", "1e+12"]),
+    (["figures", "--out", ""], ["--out", "empty"]),
+    (["bench", "--loop", "ff", "--rig", "no_such"], ["--rig", "no_such"]),
+    (["bench", "--loop", "ff", "--rig", "{broken}"], ["--rig", "broken.yaml"]),
+    (["bench", "--loop", "nonsense"], ["nonsense"]),
+    (["bench", "--inference", "{folder}", "--loop", "ff"], ["--loop", "--inference"]),
+    (["bench", "--inference", "{folder}", "--seconds", "0.1"], ["--seconds=0.1", "--inference"]),
+    (["bench", "--seconds", "0.05", "--rig", "heldout_a"], ["--rig='heldout_a'"]),
+    (["bench", "--loop", "ff", "--sizes", "4"], ["--sizes=[4]", "--loop"]),
+    (["emulate", "--serial", "--port", "5000"], ["--port=5000", "--serial"]),
+    (["emulate", "--serial", "--host", "10.0.0.1"], ["--host='10.0.0.1'", "--serial"]),
+    (["rollout", "--policy", "ff", "--dry-run", "--device", "udp://127.0.0.1:9"],
+     ["--device", "--dry-run"]),
+    (["train", "--config", "{good_config}", "--jobs", "2"], ["--jobs=2", "--seeds"]),
+    (["train", "--config", "{good_config}", "--run-dir", "{file}/run"], ["--run-dir", "a_file"]),
+    (["train", "--config", "{good_config}", "--seeds", "0", "4294967296", "--run-dir",
+      "{tmp}/run"], ["--seeds", "4294967296", "[0, 2147483647]"], "run-s0"),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--jobs", "0", "--run-dir",
+      "{tmp}/run"], ["--jobs=0", "[1, 256]"]),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--jobs", "-1", "--run-dir",
+      "{tmp}/run"], ["--jobs=-1"]),
+    (["train", "--config", "{broken}", "--seeds", "0", "1", "--run-dir", "{tmp}/run"],
+     ["broken.yaml", "not valid YAML"], "run-s0"),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--run-dir", "{file}/run"],
+     ["--run-dir", "a_file"]),
+    (["evaluate", "--policy", "ff", "ff", "--out", "{tmp}/ev"], ["--policy", "'ff'", "once"]),
+    (["evaluate", "--scenarios", "nominal", "nominal", "--out", "{tmp}/ev"],
+     ["--scenarios", "'nominal'"]),
+    (["tune", "--config", "{good_config}", "--heldout", "no_such", "--storage",
+      "sqlite:///{tmp}/t.db", "--out-dir", "{tmp}/tune"], ["--heldout[0]", "no_such"], "tune"),
+    (["tune", "--config", "{unsatisfiable}", "--storage", "sqlite:///{tmp}/t.db", "--out-dir",
+      "{tmp}/tune"], ["mpa_gym.tune", "no point", "batch_size"], "tune"),
+    (["tune", "--config", "{good_config}", "--storage", "sqlite:///{file}/t.db", "--out-dir",
+      "{tmp}/tune"], ["--storage", "a_file"]),
+    (["tune", "--config", "{good_config}", "--storage", "sqlite:///{tmp}/t.db", "--out-dir",
+      "{file}"], ["--out-dir", "a_file"]),
+    (["tune", "--config", "{broken}", "--storage", "sqlite:///{tmp}/t.db"],
+     ["broken.yaml", "not valid YAML"]),
+    (["tune", "--best", "s", "--storage", "sqlite:///{tmp}/t.db", "--out", "{folder}"],
+     ["--out", "folder"]),
 ]
 
 
 def _cases() -> list[tuple[list[str], list[str], str]]:
-    out = [(argv, want, "") for argv, want in DESIGN + SIMULATE + OTHER]
+    # a third element: a path under tmp that must not exist afterwards (nothing started)
+    out = [(c[0], c[1], c[2] if len(c) > 2 else "") for c in DESIGN + SIMULATE + OTHER]
     out += [(["simulate", "--scenario", f"{{scenario:{i}}}"], want, "")
             for i, (_, want) in enumerate(SCENARIOS)]
     out += [(["train", "--config", f"{{config:{i}}}", "--run-dir", "{tmp}/run"], want, "run")
@@ -267,6 +316,8 @@ def _argv(argv: list[str], files: dict[str, str]) -> list[str]:
             a = _config(tmp, harness=HARNESS[int(a[9:-1])][0])
         elif a == "{good_config}":
             a = _config(tmp)
+        elif a == "{unsatisfiable}":  # a search space whose every point PPO refuses
+            a = _config(tmp, harness={"tune": {"batch_size": {"categorical": [100_000]}}})
         else:
             a = a.format(**files)
         out.append(a)
