@@ -495,3 +495,61 @@ def test_train_config_validates_itself(kwargs, want):
     for w in want:
         assert w in str(e.value), (w, str(e.value))
     assert TrainConfig(env_id="MPALegResidual-v0", n_timesteps=64).n_envs == 1
+
+
+# ----------------------------------------------------------------------------- run folders
+@pytest.fixture(scope="module")
+def run_folders(tmp_path_factory) -> dict[str, str]:
+    """A tiny trained run and copies of it whose config.yaml is broken YAML or names another
+    observation wrapper than the model was trained with (harmonics 3: 17-wide observations
+    against the model's 9)."""
+    import shutil
+
+    from conftest import tiny_config
+
+    from mpa_gym.agents.training.train import train
+
+    tmp = tmp_path_factory.mktemp("runs")
+    run = train(tiny_config(tmp, n_envs=2, n_timesteps=64, n_steps=32, batch_size=64,
+                            n_epochs=1), tmp / "r-s0", 0, progress=False)
+    text = (run / "config.yaml").read_text()
+    assert "harmonics: 1" in text
+    out = {"run": str(run)}
+    for name, body in (("broken-s0", text + "  oops: [\n"), ("broken-s1", text + "  oops: [\n"),
+                       ("mismatch", text.replace("harmonics: 1", "harmonics: 3"))):
+        shutil.copytree(run, tmp / name)
+        (tmp / name / "config.yaml").write_text(body)
+        out[name] = str(tmp / name)
+    return out
+
+
+@pytest.mark.parametrize(("policies", "want"), [
+    (["{run}", "{run}"], ["--policy", "r-s0", "once"]),
+    # the policies alone of two runs: grouped by their configs before anything read them
+    (["{broken-s0}:alone", "{broken-s1}:alone"], ["broken-s0", "config.yaml", "not valid YAML"]),
+    (["{mismatch}"], ["mismatch", "17-wide", "(9,)", "does not match its model"]),
+])
+def test_evaluate_refuses_a_run_it_cannot_report_naming_it(policies, want, run_folders,
+                                                            tmp_path, capsys):
+    argv = ["evaluate", "--policy", *(p.format(**run_folders) for p in policies),
+            "--scenarios", "nominal", "--no-robustness", "--out", str(tmp_path / "ev")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("mpa-gym evaluate: error: "), err
+    for w in want:
+        assert w in err, (w, err)
+    assert not (tmp_path / "ev" / "report.json").exists()
+
+
+def test_bench_loop_on_a_rig_that_fails_its_pre_flight_stops_with_code_3(tmp_path):
+    # a 1 s regulator dead time: the pre-flight's low-pressure test sees no pressure and the
+    # loop stops as a rollout does (rig vented, code 3), naming --rig; was a HardwareFault
+    # traceback. A real process and a real emulator process.
+    rig = _scenario(tmp_path, "dead", {"duration_s": 3,
+                                       "plant": {"pressure_dead_time_s": 1.0}})
+    r = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "bench", "--loop", "ff",
+                        "--rig", rig, "--loop-s", "1", "--repeats", "1"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 3, r.stderr
+    assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert "--rig" in r.stderr and "dead.yaml" in r.stderr and "pre-flight" in r.stderr
