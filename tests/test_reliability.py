@@ -286,6 +286,9 @@ OTHER = [
      ["broken.yaml", "not valid YAML"]),
     (["tune", "--best", "s", "--storage", "sqlite:///{tmp}/t.db", "--out", "{folder}"],
      ["--out", "folder"]),
+    (["tune-baselines", "--seed", "-1"], ["--seed=-1", "[0, 4294967295]"]),
+    (["tune-baselines", "--n-trials", "0"], ["--n-trials=0"]),
+    (["tune-baselines", "--n-plants", "-1"], ["--n-plants=-1"]),
 ]
 
 
