@@ -766,6 +766,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _refuse_unknown_flags(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """Name a flag the subcommand does not have, before argparse's own check of the required
+    ones (which would otherwise be the only error shown: '--scenario is required' for
+    ``simulate --scenari x``)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    if not argv or argv[0] not in sub.choices:
+        return
+    p = sub.choices[argv[0]]
+    known = {s for act in p._actions for s in act.option_strings}
+    for tok in argv[1:]:
+        flag = tok.split("=", 1)[0]
+        if flag.startswith("--") and flag != "--" and not any(k.startswith(flag) for k in known):
+            p.error(f"unrecognized arguments: {tok}")
+
+
 def _terminate(signum: int, frame: Any) -> None:
     raise Interrupted(signum)
 
@@ -776,6 +791,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     safety check (rig vented); 130 / 143 interrupted by Ctrl-C / SIGTERM (what was reached is
     saved, the rig vented)."""
     parser = build_parser()
+    _refuse_unknown_flags(parser, list(sys.argv[1:] if argv is None else argv))
     a = parser.parse_args(argv)
     previous = None
     if threading.current_thread() is threading.main_thread():

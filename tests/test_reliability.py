@@ -556,3 +556,16 @@ def test_bench_loop_on_a_rig_that_fails_its_pre_flight_stops_with_code_3(tmp_pat
     assert r.returncode == 3, r.stderr
     assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
     assert "--rig" in r.stderr and "dead.yaml" in r.stderr and "pre-flight" in r.stderr
+
+
+@pytest.mark.parametrize("argv", [["simulate", "--scenaro", "nominal"],
+                                  ["rollout", "--no-such-flag"],
+                                  ["emulate", "--udp", "--duraton", "1"]])
+def test_an_unknown_flag_is_named_before_the_missing_required_ones(argv, capsys):
+    # argparse checks the required flags first: 'the following arguments are required:
+    # --scenario' was all that a typo of --scenario got
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert f"unrecognized arguments: {argv[-2] if argv[-1][0] != '-' else argv[-1]}" in err, err
