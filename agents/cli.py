@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
-import os
 import signal
 import sys
 import threading
@@ -22,6 +21,7 @@ import numpy as np
 import mpa_gym
 from mpa_gym.analysis.scenario import Inputs
 from mpa_gym.design import FeedforwardDesign, Reference, feasible_stiffness_range
+from mpa_gym.files import check_out_dir
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
 
 # The design flags' defaults are the dataclasses' (one definition); the name each flag's value
@@ -29,7 +29,8 @@ from mpa_gym.model.params import BAR, DEFAULT_PARAMS, check_range
 REFERENCE, INPUTS = Reference(), Inputs()
 FLAG_FIELDS = {"--x0": "reference.x0_m", "--amp": "reference.amp_m",
                "--period": "reference.period_s", "--pf-mean": "inputs.pf_mean_bar",
-               "--pf-amp": "inputs.pf_amp_bar", "--p-max": "inputs.p_max_bar"}
+               "--pf-amp": "inputs.pf_amp_bar", "--p-max": "inputs.p_max_bar",
+               "--stiffness-const": "inputs.stiffness_const_N_per_m"}
 
 # the optional dependencies a subcommand may need, and the extra (pyproject.toml) that brings each
 EXTRAS = {"torch": "train", "stable_baselines3": "train", "optuna": "train",
@@ -55,20 +56,6 @@ class CommandStopped(Exception):
     def __init__(self, out: dict[str, Any] | None, message: str, code: int) -> None:
         super().__init__(message)
         self.out, self.message, self.code = out, message, code
-
-
-def check_out_dir(flag: str, path: str) -> Path:
-    """An output folder, checked before any work: not a file, creatable, writable."""
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise ValueError(f"{flag} {path!r} is a file; give a folder (it is created if missing)")
-    try:
-        p.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ValueError(f"{flag} {path!r} cannot be created: {e.strerror}") from None
-    if not os.access(p, os.W_OK):
-        raise ValueError(f"{flag} {path!r} is not writable")
-    return p
 
 
 def _add_design_flags(p: argparse.ArgumentParser) -> None:
@@ -186,10 +173,14 @@ def show_analyze(o: dict[str, Any]) -> str:
 
 
 def cmd_simulate(a: argparse.Namespace) -> dict[str, Any]:
-    from mpa_gym.analysis.simulate import simulate
+    from mpa_gym.analysis.simulate import DT_MAX_S, DT_MIN_S, SimulationError, simulate
 
+    check_range("--dt", a.dt, DT_MIN_S, DT_MAX_S, unit="s")  # before --output-dt's
     check_range("--output-dt", a.output_dt, a.dt, 60.0, unit="s", note="at least --dt")
-    return simulate(a.scenario, DEFAULT_PARAMS, dt=a.dt, output_dt=a.output_dt).to_json()
+    try:
+        return simulate(a.scenario, DEFAULT_PARAMS, dt=a.dt, output_dt=a.output_dt).to_json()
+    except SimulationError as e:  # the scenario drives the model out of its domain: its input
+        raise ValueError(str(e)) from None
 
 
 def show_simulate(o: dict[str, Any]) -> str:
@@ -214,16 +205,39 @@ def show_figures(o: dict[str, Any]) -> str:
     return "wrote:\n  " + "\n  ".join(o["files"])
 
 
+def _only_with(a: argparse.Namespace, mode: str, flags: tuple[str, ...]) -> None:
+    """Refuse each of ``flags`` given (other than its default) where ``mode`` runs, which
+    would ignore it."""
+    for flag in flags:
+        dest = flag.lstrip("-").replace("-", "_")
+        if getattr(a, dest) != a.parser.get_default(dest):
+            raise ValueError(f"{flag}={getattr(a, dest)!r} does not go with {mode}, which "
+                             "would ignore it")
+
+
+BENCH_MODES = {"--loop": ("--control-hz", "--loop-s", "--repeats", "--rig"),
+               "--inference": ("--actions", "--no-emulator"),
+               "the step-rate benchmark": ("--seconds", "--sizes")}
+
+
 def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym import bench
 
     if a.gains is not None and a.loop is None:
         raise ValueError(f"--gains {a.gains!r} goes with --loop (the controller it tunes)")
+    if a.loop is not None and a.inference is not None:
+        raise ValueError("--loop and --inference are two benchmarks; give one")
+    mode = ("--loop" if a.loop is not None else "--inference" if a.inference is not None
+            else "the step-rate benchmark")
+    _only_with(a, mode, tuple(f for m, fs in BENCH_MODES.items() if m != mode for f in fs))
     if a.loop is not None:
-        from mpa_gym.agents.rig.rollout import loop_benchmark
+        from mpa_gym.agents.rig.rollout import LoopStopped, loop_benchmark
 
-        return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig,
-                                       gains=_gains(a))}
+        try:
+            return {"loop": loop_benchmark(a.loop, a.control_hz, a.loop_s, a.repeats, a.rig,
+                                           gains=_gains(a))}
+        except LoopStopped as e:  # the emulated rig failed a safety check: vented, code 3
+            raise CommandStopped(None, f"STOPPED, rig vented: {e}", 3) from None
     if a.inference is not None:
         from mpa_gym.agents.rig.bench import benchmark
 
@@ -253,13 +267,14 @@ def show_bench(o: dict[str, Any]) -> str:
 
 
 def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
+    from mpa_gym.agents.learned.config import SEED_MAX
     from mpa_gym.agents.learned.runs import read_eval_history, zip_timesteps
     from mpa_gym.agents.training.train import TrainingStopped, train
 
     if a.n_timesteps is not None and not 1 <= a.n_timesteps <= 10**10:
         raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, 1e10]")
-    if a.seed is not None and not 0 <= a.seed <= 2**31 - 1:
-        raise ValueError(f"--seed={a.seed} must be in [0, 2147483647]")
+    if a.seed is not None and not 0 <= a.seed <= SEED_MAX:
+        raise ValueError(f"--seed={a.seed} must be in [0, {SEED_MAX}]")
     if a.config is not None and a.resume is not None:
         raise ValueError("--config and --resume exclude each other: a resumed run keeps the "
                          "config.yaml of its folder")
@@ -269,13 +284,19 @@ def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
     if a.scenario is not None and a.resume is not None:
         raise ValueError("--scenario and --resume exclude each other: a resumed run keeps the "
                          "training scenario of its config.yaml")
+    if a.seeds is None and a.jobs is not None:
+        raise ValueError(f"--jobs={a.jobs} goes with --seeds (processes at once); one run "
+                         "trains in this process")
     if a.seeds is not None:
-        from mpa_gym.agents.evaluation.seeds import train_seeds
+        from mpa_gym.agents.evaluation.seeds import SeedsFailed, train_seeds
 
         if a.seed is not None or a.resume is not None:
             raise ValueError("--seeds trains new runs; it goes without --seed and --resume")
-        return {"runs": train_seeds(a.seeds, a.config, a.run_dir, a.n_timesteps, a.jobs,
-                                    a.scenario, a.eval_worker)}
+        try:
+            return {"runs": train_seeds(a.seeds, a.config, a.run_dir, a.n_timesteps, a.jobs,
+                                        a.scenario, a.eval_worker)}
+        except SeedsFailed as e:  # the runs that finished are kept; each failure in one line
+            raise CommandStopped({"runs": e.done} if e.done else None, str(e), 1) from None
     try:
         run = train(a.config, a.run_dir, a.seed, a.resume, a.n_timesteps,
                     progress=not a.no_progress, scenario=a.scenario, eval_worker=a.eval_worker)
@@ -514,6 +535,8 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
     check_range("--watchdog", a.watchdog, 1e-3, 10.0, unit="s")
     if not 0 <= a.port <= 65535:
         raise ValueError(f"--port={a.port} must be in [0, 65535]")
+    if a.serial:
+        _only_with(a, "--serial (a pseudo-terminal)", ("--host", "--port"))
     faults = LinkFaults(latency_s=a.latency, jitter_s=a.jitter, drop_prob=a.drop,
                         late_prob=a.late, corrupt_prob=a.corrupt,
                         position_noise_m=a.position_noise)
@@ -558,6 +581,9 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
     gains = _gains(a)  # checked before the emulator starts
     emu = link = None
     device = a.device
+    if a.dry_run and device is not None:
+        raise ValueError(f"--device {device!r} and --dry-run exclude each other: --dry-run "
+                         "starts its own emulator")
     if a.dry_run:
         from mpa_gym.hardware.emulator import Emulator
         from mpa_gym.hardware.transport import UDPServer
@@ -671,7 +697,7 @@ def build_parser() -> argparse.ArgumentParser:
     def add(name: str, help_: str, run: Any, show: Any) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_, description=help_)
         p.add_argument("--json", action="store_true", help="print one JSON object on stdout")
-        p.set_defaults(run=run, show=show)
+        p.set_defaults(run=run, show=show, parser=p)
         return p
 
     _add_design_flags(add("design", "feedforward pressures (Eq. 16/22/25) and stiffness (Eq. 23) "
@@ -892,6 +918,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _refuse_unknown_flags(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """Name a flag the subcommand does not have, before argparse's own check of the required
+    ones (which would otherwise be the only error shown: '--scenario is required' for
+    ``simulate --scenari x``)."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    if not argv or argv[0] not in sub.choices:
+        return
+    p = sub.choices[argv[0]]
+    known = {s for act in p._actions for s in act.option_strings}
+    for tok in argv[1:]:
+        flag = tok.split("=", 1)[0]
+        if flag.startswith("--") and flag != "--" and not any(k.startswith(flag) for k in known):
+            p.error(f"unrecognized arguments: {tok}")
+
+
 def _terminate(signum: int, frame: Any) -> None:
     raise Interrupted(signum)
 
@@ -902,6 +943,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     safety check (rig vented); 130 / 143 interrupted by Ctrl-C / SIGTERM (what was reached is
     saved, the rig vented)."""
     parser = build_parser()
+    _refuse_unknown_flags(parser, list(sys.argv[1:] if argv is None else argv))
     a = parser.parse_args(argv)
     previous = None
     if threading.current_thread() is threading.main_thread():

@@ -89,3 +89,40 @@ def read_yaml(path: str | os.PathLike[str], what: str, error: type[ValueError] =
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise error(f"{what} {str(p)!r} is not valid YAML: {problem}{where}") from None
+
+
+def check_out_dir(flag: str, path: str) -> Path:
+    """An output folder, checked before any work: not a file, creatable, writable."""
+    if not str(path).strip():
+        raise ValueError(f"{flag} is empty; give a folder")
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{flag} {path!r} is a file; give a folder (it is created if missing)")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path!r} cannot be created: {e.strerror}") from None
+    if not os.access(p, os.W_OK):
+        raise ValueError(f"{flag} {path!r} is not writable")
+    return p
+
+
+def check_out_file(flag: str, path: str) -> Path:
+    """An output file, checked before any work: not a folder, its folder creatable and
+    writable (:func:`check_out_dir`)."""
+    if not str(path).strip():
+        raise ValueError(f"{flag} is empty; give a file")
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{flag} {path!r} is a folder; give a file")
+    parent = p.parent if str(p.parent) else Path(".")
+    if parent.exists() and not parent.is_dir():
+        raise ValueError(f"{flag} {path!r}: {str(parent)!r} is a file, not a folder")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"{flag} {path!r}: its folder cannot be created: {e.strerror}"
+                         ) from None
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"{flag} {path!r}: its folder is not writable")
+    return p

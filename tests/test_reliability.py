@@ -137,6 +137,11 @@ SCENARIOS = [
     ({"duration_s": 3, "randomize": {"mass_kg": 3}}, ["mass_kg", "3"]),
     ({"duration_s": 3, "randomize": {"C1_Pa": [1, "x"]}}, ["C1_Pa", "'x'"]),
     ({"duration_s": 3, "randomize": {"pressure_noise_bar": [0, 0.1]}}, ["pressure_noise_bar"]),
+    # in range, but it throws the leg out of the model's domain (was a SimulationError traceback)
+    ({"duration_s": 3, "disturbances": [{"type": "impulse", "t_s": 1, "force_N": -3000,
+                                         "duration_s": 0.05}]},
+     ["disturbances[0]", "force_N=-3000", "left the model's domain"]),
+    ({"duration_s": 3, "plant": {"mass_kg": 50}}, ["plant.mass_kg=50", "left the model's domain"]),
 ]
 # PPO / harness keys for `train --config FILE`: each refused before a run folder exists
 CONFIGS = [
@@ -249,11 +254,58 @@ OTHER = [
      ["ftp://x"]),
     (["bench", "--seconds", "0"], ["--seconds", "0"]),
     (["bench", "--sizes", "0"], ["--sizes", "0"]),
+    # issue 34: refused before work, naming the flag (were tracebacks, silent or unclear)
+    (["simulate", "--scenario", "nominal", "--dt", "100"], ["--dt=100", "[0.0001, 0.1]"]),
+    (["simulate", "--scenario", "nominal", "--dt", "1e-9"], ["--dt=1e-09"]),
+    (["analyze", "--stiffness-const", "1e12"], ["--stiffness-const", "1e+12"]),
+    (["figures", "--out", ""], ["--out", "empty"]),
+    (["bench", "--loop", "ff", "--rig", "no_such"], ["--rig", "no_such"]),
+    (["bench", "--loop", "ff", "--rig", "{broken}"], ["--rig", "broken.yaml"]),
+    (["bench", "--loop", "nonsense"], ["nonsense"]),
+    (["bench", "--inference", "{folder}", "--loop", "ff"], ["--loop", "--inference"]),
+    (["bench", "--inference", "{folder}", "--seconds", "0.1"], ["--seconds=0.1", "--inference"]),
+    (["bench", "--seconds", "0.05", "--rig", "heldout_a"], ["--rig='heldout_a'"]),
+    (["bench", "--loop", "ff", "--sizes", "4"], ["--sizes=[4]", "--loop"]),
+    (["emulate", "--serial", "--port", "5000"], ["--port=5000", "--serial"]),
+    (["emulate", "--serial", "--host", "10.0.0.1"], ["--host='10.0.0.1'", "--serial"]),
+    (["rollout", "--policy", "ff", "--dry-run", "--device", "udp://127.0.0.1:9"],
+     ["--device", "--dry-run"]),
+    (["train", "--config", "{good_config}", "--jobs", "2"], ["--jobs=2", "--seeds"]),
+    (["train", "--config", "{good_config}", "--run-dir", "{file}/run"], ["--run-dir", "a_file"]),
+    (["train", "--config", "{good_config}", "--seeds", "0", "4294967296", "--run-dir",
+      "{tmp}/run"], ["--seeds", "4294967296", "[0, 2147483647]"], "run-s0"),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--jobs", "0", "--run-dir",
+      "{tmp}/run"], ["--jobs=0", "[1, 256]"]),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--jobs", "-1", "--run-dir",
+      "{tmp}/run"], ["--jobs=-1"]),
+    (["train", "--config", "{broken}", "--seeds", "0", "1", "--run-dir", "{tmp}/run"],
+     ["broken.yaml", "not valid YAML"], "run-s0"),
+    (["train", "--config", "{good_config}", "--seeds", "0", "1", "--run-dir", "{file}/run"],
+     ["--run-dir", "a_file"]),
+    (["evaluate", "--policy", "ff", "ff", "--out", "{tmp}/ev"], ["--policy", "'ff'", "once"]),
+    (["evaluate", "--scenarios", "nominal", "nominal", "--out", "{tmp}/ev"],
+     ["--scenarios", "'nominal'"]),
+    (["tune", "--config", "{good_config}", "--heldout", "no_such", "--storage",
+      "sqlite:///{tmp}/t.db", "--out-dir", "{tmp}/tune"], ["--heldout[0]", "no_such"], "tune"),
+    (["tune", "--config", "{unsatisfiable}", "--storage", "sqlite:///{tmp}/t.db", "--out-dir",
+      "{tmp}/tune"], ["mpa_gym.tune", "no point", "batch_size"], "tune"),
+    (["tune", "--config", "{good_config}", "--storage", "sqlite:///{file}/t.db", "--out-dir",
+      "{tmp}/tune"], ["--storage", "a_file"]),
+    (["tune", "--config", "{good_config}", "--storage", "sqlite:///{tmp}/t.db", "--out-dir",
+      "{file}"], ["--out-dir", "a_file"]),
+    (["tune", "--config", "{broken}", "--storage", "sqlite:///{tmp}/t.db"],
+     ["broken.yaml", "not valid YAML"]),
+    (["tune", "--best", "s", "--storage", "sqlite:///{tmp}/t.db", "--out", "{folder}"],
+     ["--out", "folder"]),
+    (["tune-baselines", "--seed", "-1"], ["--seed=-1", "[0, 4294967295]"]),
+    (["tune-baselines", "--n-trials", "0"], ["--n-trials=0"]),
+    (["tune-baselines", "--n-plants", "-1"], ["--n-plants=-1"]),
 ]
 
 
 def _cases() -> list[tuple[list[str], list[str], str]]:
-    out = [(argv, want, "") for argv, want in DESIGN + SIMULATE + OTHER]
+    # a third element: a path under tmp that must not exist afterwards (nothing started)
+    out = [(c[0], c[1], c[2] if len(c) > 2 else "") for c in DESIGN + SIMULATE + OTHER]
     out += [(["simulate", "--scenario", f"{{scenario:{i}}}"], want, "")
             for i, (_, want) in enumerate(SCENARIOS)]
     out += [(["train", "--config", f"{{config:{i}}}", "--run-dir", "{tmp}/run"], want, "run")
@@ -278,6 +330,8 @@ def _argv(argv: list[str], files: dict[str, str]) -> list[str]:
             a = _config(tmp, harness=HARNESS[int(a[9:-1])][0])
         elif a == "{good_config}":
             a = _config(tmp)
+        elif a == "{unsatisfiable}":  # a search space whose every point PPO refuses
+            a = _config(tmp, harness={"tune": {"batch_size": {"categorical": [100_000]}}})
         else:
             a = a.format(**files)
         out.append(a)
@@ -455,3 +509,74 @@ def test_train_config_validates_itself(kwargs, want):
     for w in want:
         assert w in str(e.value), (w, str(e.value))
     assert TrainConfig(env_id="MPALegResidual-v0", n_timesteps=64).n_envs == 1
+
+
+# ----------------------------------------------------------------------------- run folders
+@pytest.fixture(scope="module")
+def run_folders(tmp_path_factory) -> dict[str, str]:
+    """A tiny trained run and copies of it whose config.yaml is broken YAML or names another
+    observation wrapper than the model was trained with (harmonics 3: 17-wide observations
+    against the model's 9)."""
+    import shutil
+
+    from conftest import tiny_config
+
+    from mpa_gym.agents.training.train import train
+
+    tmp = tmp_path_factory.mktemp("runs")
+    run = train(tiny_config(tmp, n_envs=2, n_timesteps=64, n_steps=32, batch_size=64,
+                            n_epochs=1), tmp / "r-s0", 0, progress=False)
+    text = (run / "config.yaml").read_text()
+    assert "harmonics: 1" in text
+    out = {"run": str(run)}
+    for name, body in (("broken-s0", text + "  oops: [\n"), ("broken-s1", text + "  oops: [\n"),
+                       ("mismatch", text.replace("harmonics: 1", "harmonics: 3"))):
+        shutil.copytree(run, tmp / name)
+        (tmp / name / "config.yaml").write_text(body)
+        out[name] = str(tmp / name)
+    return out
+
+
+@pytest.mark.parametrize(("policies", "want"), [
+    (["{run}", "{run}"], ["--policy", "r-s0", "once"]),
+    # the policies alone of two runs: grouped by their configs before anything read them
+    (["{broken-s0}:alone", "{broken-s1}:alone"], ["broken-s0", "config.yaml", "not valid YAML"]),
+    (["{mismatch}"], ["mismatch", "17-wide", "(9,)", "does not match its model"]),
+])
+def test_evaluate_refuses_a_run_it_cannot_report_naming_it(policies, want, run_folders,
+                                                            tmp_path, capsys):
+    argv = ["evaluate", "--policy", *(p.format(**run_folders) for p in policies),
+            "--scenarios", "nominal", "--no-robustness", "--out", str(tmp_path / "ev")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("mpa-gym evaluate: error: "), err
+    for w in want:
+        assert w in err, (w, err)
+    assert not (tmp_path / "ev" / "report.json").exists()
+
+
+def test_bench_loop_on_a_rig_that_fails_its_pre_flight_stops_with_code_3(tmp_path):
+    # a 1 s regulator dead time: the pre-flight's low-pressure test sees no pressure and the
+    # loop stops as a rollout does (rig vented, code 3), naming --rig; was a HardwareFault
+    # traceback. A real process and a real emulator process.
+    rig = _scenario(tmp_path, "dead", {"duration_s": 3,
+                                       "plant": {"pressure_dead_time_s": 1.0}})
+    r = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "bench", "--loop", "ff",
+                        "--rig", rig, "--loop-s", "1", "--repeats", "1"],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 3, r.stderr
+    assert "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    assert "--rig" in r.stderr and "dead.yaml" in r.stderr and "pre-flight" in r.stderr
+
+
+@pytest.mark.parametrize("argv", [["simulate", "--scenaro", "nominal"],
+                                  ["rollout", "--no-such-flag"],
+                                  ["emulate", "--udp", "--duraton", "1"]])
+def test_an_unknown_flag_is_named_before_the_missing_required_ones(argv, capsys):
+    # argparse checks the required flags first: 'the following arguments are required:
+    # --scenario' was all that a typo of --scenario got
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert f"unrecognized arguments: {argv[-2] if argv[-1][0] != '-' else argv[-1]}" in err, err

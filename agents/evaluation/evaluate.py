@@ -117,11 +117,13 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     the baselines, and stacked into one batch when their class allows it
     (``baselines.stack``), else run as one controller per scenario."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
+    _once("--scenarios", [sc.name for sc in loaded], scenarios)
+    _once("--policy", [spec_label(p) for p in policies], policies)
     policies = with_alone(policies)
+    learned = {spec: load_policy(spec) for spec in policies if not builds_per_scenario(spec)}
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
         require_stats()
-    learned = {spec: load_policy(spec) for spec in policies if not builds_per_scenario(spec)}
     # a baseline is built for its scenario's plan; batched, one stack of them per baseline
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains)[0] for sc in loaded]
            for spec in policies if builds_per_scenario(spec)}
@@ -160,6 +162,18 @@ def _stacked(policies: list[Policy]) -> Policy | None:
         return stack(policies)
     except (ValueError, TypeError):
         return None
+
+
+def _once(flag: str, labels: list[str], given: list[Any]) -> None:
+    """Refuse two inputs that the report would show under one label (the same run or scenario
+    given twice, or two of one name): a report row each, never a run counted twice."""
+    seen: dict[str, Any] = {}
+    for label, g in zip(labels, given, strict=True):
+        if label in seen:
+            raise ValueError(f"{flag}: {str(seen[label])!r} and {str(g)!r} are both reported as "
+                             f"{label!r}; give each once (several runs of one config go in "
+                             "folders of their own, e.g. name-s0 name-s1)")
+        seen[label] = g
 
 
 def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, Any],

@@ -25,12 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from mpa_gym.agents.learned.config import DEFAULT_CONFIG
+from mpa_gym.agents.learned.config import DEFAULT_CONFIG, SEED_MAX, load_config
 from mpa_gym.agents.learned.policies import ALONE_LABEL, run_of, spec_label
 from mpa_gym.agents.learned.runs import read_run_config
+from mpa_gym.files import check_out_dir
 
 BOOTSTRAP_REPS = 5000  # rliable's default is 50 000; 5 000 puts 95 % bounds within ~1 % of it
 CI = 0.95
+MAX_JOBS = 256  # most training processes at once (--jobs)
 METRICS = ("position_rmse_mm", "position_max_mm", "stiffness_rmse_pct", "saturation_pct",
            "return", "policy_share")
 
@@ -56,15 +58,29 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
     seeds' training as much as they speed up their own)."""
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"--seeds={seeds} must be distinct seeds, at least one")
-    if any(s < 0 for s in seeds):
-        raise ValueError(f"--seeds={seeds}: seeds must be >= 0")
-
+    for s in seeds:  # every seed, the config and the folders checked before a child starts
+        if isinstance(s, bool) or not isinstance(s, int) or not 0 <= s <= SEED_MAX:
+            raise ValueError(f"--seeds: seed {s!r} must be a whole number in [0, {SEED_MAX}]")
+    if jobs is not None and (isinstance(jobs, bool) or not isinstance(jobs, int)
+                             or not 1 <= jobs <= MAX_JOBS):
+        raise ValueError(f"--jobs={jobs!r} must be a whole number of processes in "
+                         f"[1, {MAX_JOBS}]")
     config = Path(config or DEFAULT_CONFIG)
+    if scenario is None:
+        load_config(config)
+    else:
+        from mpa_gym.agents.training.train import with_scenario  # torch: only when training
+
+        with_scenario(config, scenario)
     base = Path(run_dir) if run_dir else Path("runs") / config.stem
     folders = [base.parent / f"{base.name}-s{s}" for s in seeds]
     for f in folders:
-        if (f / "model.zip").exists():
-            raise ValueError(f"run folder {f} already holds a model; choose another --run-dir")
+        if f.exists() and not f.is_dir():
+            raise ValueError(f"--run-dir: run folder {str(f)!r} is a file")
+        if (f / "model.zip").exists() or (f / "config.yaml").exists():
+            raise ValueError(f"--run-dir: run folder {f} already holds a run; choose another "
+                             "--run-dir")
+    check_out_dir("--run-dir", str(base.parent))
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     at_once = min(jobs or cores(), len(seeds))
     if eval_worker is None:
@@ -80,17 +96,27 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
         if eval_worker is not None:
             cmd.append("--eval-worker" if eval_worker else "--no-eval-worker")
         r = subprocess.run(cmd, capture_output=True, text=True, env=env)
-        if r.returncode != 0:
-            return {"run_dir": str(folder), "seed": seed, "error": r.stderr.strip()[-2000:]}
+        if r.returncode != 0:  # the child's last word: its one-line error or a traceback's end
+            said = r.stderr.strip().splitlines() or [f"exit code {r.returncode}"]
+            return {"run_dir": str(folder), "seed": seed, "error": said[-1]}
         return {**json.loads(r.stdout), "seed": seed}
 
     with ThreadPoolExecutor(max_workers=at_once) as pool:
         out = list(pool.map(one, seeds, folders))
     failed = [o for o in out if "error" in o]
     if failed:
-        raise RuntimeError("; ".join(f"seed {o['seed']} ({o['run_dir']}) failed: {o['error']}"
-                                     for o in failed))
+        raise SeedsFailed([o for o in out if "error" not in o], "; ".join(
+            f"seed {o['seed']} ({o['run_dir']}) failed: {o['error']}" for o in failed))
     return out
+
+
+class SeedsFailed(RuntimeError):
+    """Some seeds of :func:`train_seeds` failed (after the others finished); ``done`` holds the
+    runs that finished, the message each failure's last line."""
+
+    def __init__(self, done: list[dict[str, Any]], message: str) -> None:
+        super().__init__(message)
+        self.done = done
 
 
 # ------------------------------------------------------------------ grouping and statistics

@@ -65,6 +65,7 @@ LEGACY_WRAPPERS = {"agents.wrappers.TrackingErrorObservation": OBS_WRAPPER,
                    "agents.wrappers.ForceStiffnessAction": ACTION_WRAPPER}
 # the default training config: `mpa-gym train`, `tune` and `tune-baselines` without --config
 DEFAULT_CONFIG = DEFAULT_TRAIN_CONFIG
+SEED_MAX = 2**31 - 1  # largest training seed (every seed a training env and torch accept)
 EVAL_SEED = 1_000_000  # first seed of evaluation episodes: no training env draws seeds this high
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 
@@ -133,10 +134,10 @@ class TrainConfig:
             if kwargs is not None:
                 _check_wrapper(name, kwargs, self.env_id, f"{where}.env_wrapper")
         h = f"{self.source}: mpa_gym"
-        self.seed = _int(self.seed, f"{h}.seed", 0, 2**31 - 1)
+        self.seed = _int(self.seed, f"{h}.seed", 0, SEED_MAX)
         self.eval_freq = _int(self.eval_freq, f"{h}.eval_freq", 1, 1e10)
         self.checkpoint_freq = _int(self.checkpoint_freq, f"{h}.checkpoint_freq", 1, 1e10)
-        self.eval_seed = _int(self.eval_seed, f"{h}.eval_seed", 0, 2**31 - 1)
+        self.eval_seed = _int(self.eval_seed, f"{h}.eval_seed", 0, SEED_MAX)
         if not isinstance(self.eval_scenarios, list):
             raise ConfigError(f"{h}.eval_scenarios={self.eval_scenarios!r} must be a list of "
                               "scenario names, paths or mappings")

@@ -294,9 +294,14 @@ def _load_run(run_dir: str | Path, which: str, deployed: bool) -> tuple[Any, Any
         norm.training = False
         norm.norm_reward = False
     policy = LearnedPolicy.from_config(model, norm, cfg, str(run))
+    env_width = len(obs_names(cfg.env_id == "MPALegResidual-v0"))
+    width, trained = policy.frontend.width(env_width), model.observation_space.shape
+    if trained != (width,):  # the config is not the one the model was trained with
+        raise ValueError(f"{run}: config.yaml's env and env_wrapper give {width}-wide "
+                         f"observations, model.zip was trained on {trained}: the run's config "
+                         "does not match its model (was config.yaml edited or copied in?)")
     if deployed:
-        return DeployedPolicy.from_learned(
-            policy, len(obs_names(cfg.env_id == "MPALegResidual-v0"))), cfg
+        return DeployedPolicy.from_learned(policy, env_width), cfg
     return policy, cfg
 
 

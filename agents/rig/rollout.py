@@ -312,6 +312,11 @@ def wait_floor(control_hz: float, duration_s: float, spin_s: float = SPIN_S
             "p99_late_ms": float(np.percentile(late, 99) * 1e3)}
 
 
+class LoopStopped(RuntimeError):
+    """``bench --loop`` stopped: the emulated rig failed a safety check (the rig is vented);
+    the message names ``--rig`` and what was measured."""
+
+
 def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 10.0,
                    repeats: int = 3, rig: Any = "nominal", scenario: Any = "nominal",
                    gains: Gains | None = None) -> dict[str, Any]:
@@ -322,11 +327,16 @@ def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 
     median command latency."""
     import tempfile
 
+    from mpa_gym.analysis.scenario import load_scenario
 
     check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
     check_range("--loop-s", loop_s, 1.0, 600.0, unit="s")
     if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:
         raise ValueError(f"--repeats={repeats!r} must be a whole number in [1, 100]")
+    try:  # the emulator process loads the same scenario: refused here, before any work
+        load_scenario(rig)
+    except ValueError as e:
+        raise ValueError(f"--rig: {e}") from None
     # the controller is checked (built once) before the first measurement
     load_policy(policy_spec, {"scenario": scenario, "task": {"dt_s": 1.0 / control_hz}},
                 gains=gains, flag="--loop")
@@ -335,9 +345,12 @@ def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 
         for i in range(repeats):
             floor = wait_floor(control_hz, loop_s)
             with EmulatorProcess(rig) as emu:
-                out = rollout(policy_spec, emu.url, Path(tmp) / f"loop{i}.jsonl",
-                              scenario=scenario, control_hz=control_hz, episode_s=loop_s,
-                              gains=gains, flag="--loop")
+                try:
+                    out = rollout(policy_spec, emu.url, Path(tmp) / f"loop{i}.jsonl",
+                                  scenario=scenario, control_hz=control_hz, episode_s=loop_s,
+                                  gains=gains, flag="--loop")
+                except HardwareFault as e:  # the rig of --rig fails the pre-flight or homing
+                    raise LoopStopped(f"--rig {rig!r}: {e}") from None
             t = out["timing"]
             pairs.append({"floor": floor, "loop": {
                 "steps": t["steps"], "overrun_pct": 100.0 * t["overruns"] / max(1, t["steps"]),

@@ -82,6 +82,7 @@ from mpa_gym.envs.sb3 import SB3VecEnv
 from mpa_gym.files import (
     DamagedFileError,
     atomic_write_text,
+    check_out_dir,
     read_yaml,
     remove_stale_temporaries,
 )
@@ -252,7 +253,7 @@ def train(config: str | Path | None = None, run_dir: str | Path | None = None,
             raise ConfigError(f"run folder {run} already holds a started run (config.yaml, no "
                               f"checkpoint yet); use --resume {run} to train it from step 0, "
                               "or another --run-dir")
-        run.mkdir(parents=True, exist_ok=True)
+        check_out_dir("--run-dir", str(run))  # created, or a one-line error naming the flag
         atomic_write_text(run / "config.yaml",
                           yaml.safe_dump(_resolved(cfg, seed, n_timesteps), sort_keys=False))
 

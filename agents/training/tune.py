@@ -83,7 +83,8 @@ from mpa_gym.agents.learned.config import (
 )
 from mpa_gym.agents.learned.policies import ALONE, spec_label
 from mpa_gym.agents.training.train import train
-from mpa_gym.files import read_yaml
+from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.files import check_out_dir, check_out_file, read_yaml
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
 DEFAULT_STUDY = "ppo_residual"
@@ -247,7 +248,7 @@ def open_storage(url: str, heartbeat_s: int = 60) -> optuna.storages.BaseStorage
     journal = url[len("journal:"):] if url.startswith("journal:") else (
         url if "://" not in url and url.endswith((".log", ".jsonl")) else None)
     if journal is not None:
-        Path(journal).parent.mkdir(parents=True, exist_ok=True)
+        check_out_file("--storage", journal)
         try:
             return JournalStorage(JournalFileBackend(journal))
         except OSError as e:
@@ -266,7 +267,7 @@ def open_storage(url: str, heartbeat_s: int = 60) -> optuna.storages.BaseStorage
                              "postgres extra): pip install -c constraints.txt -e "
                              "\".[postgres]\"") from None
     if url.startswith("sqlite:///"):
-        Path(url[len("sqlite:///"):]).parent.mkdir(parents=True, exist_ok=True)
+        check_out_file("--storage", url[len("sqlite:///"):])
     from sqlalchemy.exc import IntegrityError, ProgrammingError
 
     for attempt in range(5):
@@ -437,6 +438,42 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
     return run
 
 
+SPACE_DRAWS = 256  # random points of a search space tried before refusing it as unsatisfiable
+
+
+def check_space_feasible(data: dict[str, Any],
+                         space: dict[str, optuna.distributions.BaseDistribution]) -> None:
+    """Refuse a search space none of whose points makes a valid config (every trial would be
+    pruned as invalid), before any trial: ``SPACE_DRAWS`` random points of the space are
+    tried (one valid point ends the check); the error names the first point's problem."""
+    import numpy as np
+    from optuna.distributions import CategoricalDistribution, IntDistribution
+
+    env_id = next(k for k in data if k != "mpa_gym")
+    rng = np.random.default_rng(0)
+
+    def draw(d: optuna.distributions.BaseDistribution) -> Any:
+        if isinstance(d, CategoricalDistribution):
+            return d.choices[int(rng.integers(len(d.choices)))]
+        if isinstance(d, IntDistribution):
+            return int(d.low + d.step * rng.integers((d.high - d.low) // d.step + 1))
+        if d.log:
+            return float(np.exp(rng.uniform(np.log(d.low), np.log(d.high))))
+        return float(rng.uniform(d.low, d.high))
+
+    first = None
+    for _ in range(SPACE_DRAWS):
+        params = {n: draw(d) for n, d in space.items()}
+        try:
+            parse_config(apply_params(data, env_id, params), "mpa_gym.tune")
+            return
+        except ConfigError as e:
+            first = first or (params, e)
+    raise ConfigError(f"mpa_gym.tune: no point of the search space makes a valid config "
+                      f"({SPACE_DRAWS} random points tried; every trial would be pruned), e.g. "
+                      f"{first[0]}: {first[1]}")
+
+
 def _suggest(trial: optuna.Trial, name: str, d: optuna.distributions.BaseDistribution) -> Any:
     from optuna.distributions import CategoricalDistribution, IntDistribution
 
@@ -471,16 +508,19 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     if objective not in OBJECTIVES:
         raise ValueError(f"--objective={objective!r}: allowed {sorted(OBJECTIVES)}")
     path = Path(config or DEFAULT_CONFIG)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
-    data = yaml.safe_load(path.read_text())
+    data = read_yaml(path, "config file", ConfigError)
     cfg = parse_config(copy.deepcopy(data), str(path))  # the base config must be valid itself
-    parse_space(study_space(data))
+    check_space_feasible(data, parse_space(study_space(data)))
+    for i, sc in enumerate(heldout or []):  # the objectives' scenarios, before a trial trains
+        try:
+            load_scenario(sc)
+        except ValueError as e:
+            raise ValueError(f"--heldout[{i}]: {e}") from None
+    out = check_out_dir("--out-dir", str(out_dir) if out_dir else
+                        str(Path("runs") / "tune" / study_name))
     st = open_storage(storage, heartbeat_s)
     study = open_study(st, study_name, data, objective)
     worker = f"{socket.gethostname()}:{os.getpid()}"
-    out = Path(out_dir) if out_dir else Path("runs") / "tune" / study_name
-    out.mkdir(parents=True, exist_ok=True)
     seeds = [cfg.seed + i for i in range(seeds_per_trial)]
     callbacks = []
     if max_total_trials is not None:
@@ -568,6 +608,7 @@ def write_best(storage: str, study_name: str, out: str | Path, trial: int | None
                ) -> dict[str, Any]:
     """Write the config of a study's trial (default: the Pareto-front trial with the lowest
     held-out position RMSE) to ``out``; the search space stays in it for a next study."""
+    check_out_file("--out", str(out))
     st = open_storage(storage)
     try:
         study = optuna.load_study(study_name=study_name, storage=st)

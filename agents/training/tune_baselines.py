@@ -127,9 +127,10 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
 
     if name not in SPACES:
         raise ValueError(f"policy={name!r} has no tunable gains; choose one of {sorted(SPACES)}")
-    for key, v, lo in (("n_trials", n_trials, 1), ("n_plants", n_plants, 1)):
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise ValueError(f"{key}={v!r} must be a whole number >= {lo}")
+    for flag, v, lo, hi in (("--n-trials", n_trials, 1, 10**6), ("--n-plants", n_plants, 1, 10**4),
+                            ("--seed", seed, 0, 2**32 - 1)):  # the sampler's seed: numpy's u32
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise ValueError(f"{flag}={v!r} must be a whole number in [{lo}, {hi}]")
     sc, plants = training_plants(config, n_plants, seed, episode_s)
     space = SPACES[name]
     default = make_baseline(name, sc)

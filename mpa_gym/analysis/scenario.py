@@ -57,6 +57,9 @@ def _number(name: str, value: Any, **rng: Any) -> float:
         raise ScenarioError(str(e)) from None
 
 
+K_CONST_MAX = 1e5  # [N/m] largest |k̂| of a constant-stiffness design (Fig. 11: k <= ~1.3e3)
+
+
 @dataclass(frozen=True)
 class Inputs:
     """Feedforward inputs: an Eq. (22) pattern, a Table 1 mode, or an Eq. (25) stiffness target
@@ -90,7 +93,9 @@ class Inputs:
                                          high=mean, unit="bar", note="Eq. 22: |A_f| <= P'_f0"))
         if self.stiffness_const_N_per_m is not None:
             set_(self, "stiffness_const_N_per_m", _number(
-                "inputs.stiffness_const_N_per_m", self.stiffness_const_N_per_m, unit="N/m"))
+                "inputs.stiffness_const_N_per_m", self.stiffness_const_N_per_m,
+                low=-K_CONST_MAX, high=K_CONST_MAX, unit="N/m",
+                note="about 100 times the Fig. 11 envelope's largest k"))
 
     def design(self, reference: Reference, params: Params = DEFAULT_PARAMS) -> FeedforwardDesign:
         """The feedforward for ``reference`` on the nominal model ``params``: Eq. (25) for a

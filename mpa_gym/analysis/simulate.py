@@ -46,6 +46,9 @@ def whole_periods(t: np.ndarray, period_s: float) -> slice:
     return slice(max(0, n - METRIC_PERIODS * per), n)
 
 
+DT_MIN_S, DT_MAX_S = 1e-4, 0.1  # [s] RK4 steps of `simulate` (shortest: 300,000 for 30 s)
+
+
 class SimulationError(RuntimeError):
     """The plant left the region where the model is defined (NaN state); results so far kept."""
 
@@ -140,7 +143,7 @@ def simulate(
     method : "rk4" (fixed step) or "reference" (scipy DOP853, rtol 1e-10, for accuracy checks).
     """
     sc = load_scenario(scenario)
-    check_range("dt", dt, 0.0, 0.1, low_open=True, unit="s")
+    check_range("dt", dt, DT_MIN_S, DT_MAX_S, unit="s")
     if method not in ("rk4", "reference"):
         raise ValueError(f"method={method!r} must be 'rk4' or 'reference'")
     # an infeasible design (pressures outside [0, p_max], MPA lengths outside their domain)
@@ -218,10 +221,18 @@ def simulate(
                 y = rk4_step_u(f, y, u0[i], um[i], u1[i], float(h[i]))
             if not np.all(np.isfinite(y)):
                 part = _result(sc, design, grid[: i + 1], ys[: i + 1], lag, keep[: i + 1])
+                # what the scenario changed: the disturbances so far and the plant's overrides
+                kicks = [f"disturbances[{j}] (force_N={d.force_N:g} N from t_s={d.t_s:g} s "
+                         f"for {d.duration_s:g} s)" for j, d in enumerate(sc.disturbances)
+                         if d.t_s <= grid[i + 1]]
+                kicks += [f"plant.{f.name}={getattr(sc.plant, f.name)!r}"
+                          for f in dataclasses.fields(sc.plant)
+                          if getattr(sc.plant, f.name) != f.default]
                 raise SimulationError(
                     f"scenario {sc.name!r}: the state left the model's domain at t = "
                     f"{grid[i + 1]:.4f} s (last state X = {ys[i, 0]:.5f} m, V = {ys[i, 1]:.4f} "
-                    f"m/s); the {i + 1} steps before it are in .partial", part)
+                    f"m/s)" + (f" under {', '.join(kicks)}" if kicks else "")
+                    + f"; the {i + 1} steps before it are in .partial", part)
             ys[i + 1] = y
     return _result(sc, design, grid, ys, lag, keep)
 

@@ -3,12 +3,14 @@
 It runs the plant (the scenario's true plant, compiled RK4 in ≤ 1 ms steps, with its braid and
 slider friction) in real time, applies each pressure command when it arrives plus the
 regulator's dead time (to the microsecond, not rounded to a step), through the regulator's slew
-limit and first-order lag, streams telemetry
-every ``telemetry_period_s``, and behaves like firmware: when commands stop for
-``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last command even when its
-own loop is a few ms late) it vents both MPAs and raises ``FAULT_WATCHDOG_VENT`` until
-commands resume; a ``Vent`` message vents at once. For tests it injects what real links do:
-latency and jitter on telemetry, dropped, late and corrupt frames, and sensor noise.
+limit and first-order lag, plays the scenario's ``disturbances`` (each impulse's mean force over
+each step, as the sim's plan) on the session clock (plant time since the first command after the
+start or a vent), streams telemetry every ``telemetry_period_s``, and behaves like firmware:
+when commands stop for ``watchdog_s`` (40 ms, so that the vent lands within 50 ms of the last
+command even when its own loop is a few ms late) it vents both MPAs and raises
+``FAULT_WATCHDOG_VENT`` until commands resume; a ``Vent`` message vents at once. For tests it
+injects what real links do: latency and jitter on telemetry, dropped, late and corrupt frames,
+and sensor noise.
 """
 
 from __future__ import annotations
@@ -105,6 +107,11 @@ class Emulator:
             self.state = np.array(initial_state, dtype=float)
         self.cmd = self.state[2:].copy()  # the command the regulator acts on (after dead time)
         self.t = 0.0  # [s] plant time
+        # the scenario's disturbances play on the session clock: plant time since the first
+        # command after the start or a vent (None: no session yet), as the sim's plan plays them
+        # on episode time
+        self.kicks = tuple((d.t_s, d.t_s + d.duration_s, d.force_N) for d in self.sc.disturbances)
+        self.session_t0: float | None = None
         self._pending: deque[tuple[float, float, float]] = deque()  # (t due, P'_e, P'_f)
         self.vented = False
         self.faults_flags = 0
@@ -122,21 +129,28 @@ class Emulator:
         h = dt / n
         X, V, Pe, Pf = self.state
 
-        def hold(X: float, V: float, Pe: float, Pf: float, span: float) -> tuple:
-            """One RK4 step of ``span`` [s] under the command now in force."""
+        def hold(X: float, V: float, Pe: float, Pf: float, a: float, b: float) -> tuple:
+            """One RK4 step from plant time ``a`` to ``b`` [s] under the command now in force
+            and the disturbances' mean force over it (the sim's plan takes the same mean)."""
             ce, cf = self.cmd
-            return fast.plant_step(X, V, Pe, Pf, ce, cf, ce, cf, 0.0, 0.0, span, self.consts, 1)
+            f_ext = 0.0
+            if self.kicks and self.session_t0 is not None:
+                s0, s1 = a - self.session_t0, b - self.session_t0
+                f_ext = sum(f * max(0.0, min(s1, hi) - max(s0, lo))
+                            for lo, hi, f in self.kicks) / (b - a)
+            return fast.plant_step(X, V, Pe, Pf, ce, cf, ce, cf, 0.0, f_ext, b - a,
+                                   self.consts, 1)
 
         for _ in range(n):
             a, b = self.t, self.t + h
             while self._pending and self._pending[0][0] <= b:
                 due, ce, cf = self._pending.popleft()
                 if due > a:
-                    X, V, Pe, Pf = hold(X, V, Pe, Pf, due - a)
+                    X, V, Pe, Pf = hold(X, V, Pe, Pf, a, due)
                     a = due
                 self.cmd[:] = (ce, cf)
             if b > a:
-                X, V, Pe, Pf = hold(X, V, Pe, Pf, b - a)
+                X, V, Pe, Pf = hold(X, V, Pe, Pf, a, b)
             self.t = b
         if not (math.isfinite(X) and math.isfinite(V)):
             self.faults_flags |= proto.FAULT_SENSOR
@@ -148,6 +162,7 @@ class Emulator:
 
     def _vent(self, reason_flag: int) -> None:
         self._pending.clear()  # the vent valves open at once, whatever was in flight
+        self.session_t0 = None  # the next command starts a new session (disturbance clock)
         self.cmd[:] = 0.0
         self.vented = True
         self.faults_flags |= reason_flag
@@ -158,6 +173,8 @@ class Emulator:
             self.stats.commands += 1
             self.stats.last_command_time = now
             self._last_cmd_seq = msg.seq
+            if self.session_t0 is None:
+                self.session_t0 = self.t
             if not (math.isfinite(msg.pe_Pa) and math.isfinite(msg.pf_Pa)):
                 self._vent(proto.FAULT_OVERPRESSURE)
                 return
@@ -275,15 +292,21 @@ class EmulatorProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "mpa_gym.agents.cli", "emulate", "--udp", "--scenario",
              str(scenario), *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        line = ""
+        line, said = "", []
         deadline = time.monotonic() + start_timeout_s
         while "udp://" not in line and time.monotonic() < deadline:
             line = self.proc.stderr.readline()
+            if line.strip():
+                said.append(line.strip())
             if not line and self.proc.poll() is not None:
                 break
         if "udp://" not in line:
             self.close()
-            raise RuntimeError(f"the emulator process did not start: {line.strip()!r}")
+            # the child's own last word: its one-line error, or the last line of a traceback
+            why = said[-1] if said else f"exit code {self.proc.returncode}, nothing on stderr"
+            if why.startswith("mpa-gym emulate: error: "):  # bad input: the caller's ValueError
+                raise ValueError(why.removeprefix("mpa-gym emulate: error: "))
+            raise RuntimeError(f"the emulator process did not start: {why}")
         self.url = line.split("at ", 1)[1].split()[0]
 
     def close(self) -> None:
