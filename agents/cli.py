@@ -484,7 +484,8 @@ def show_calibrate(o: dict[str, Any]) -> str:
     order = ", ".join(f"{f['controller']} {f['mean_position_rmse_mm']:.3f} mm"
                       for f in o["fallback_order"])
     peaks = ", ".join(f"{k} {v:.3f} mm" for k, v in o["peaks_mm"].items())
-    return (f"fallback order (mean position RMSE over {o['n_plants']} training plants): "
+    return (f"fallback order (mean position RMSE over the {o['ordered_on_plants']} of "
+            f"{o['n_plants']} training plants a fallback is for): "
             f"{order}\nthe policy keeps {o['kept_plants']} of {o['n_plants']} plants (it tracks "
             f"them at least as well as {o['fallback_order'][0]['controller']}); the monitors' "
             f"highest RMS there: {peaks}"

@@ -450,7 +450,7 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"\(0, 30\] s"),
     ({"monitors": {"limit_cycle": {"clip_mm": 0.3}}},  # at or under its level: never trips
      r"supervisor\.monitors\.limit_cycle\.clip_mm=0\.3 mm is outside the allowed range "
-     r"\(0\.68, 100\] mm"),
+     r"\(1\.414, 100\] mm"),
     ({"monitors": {"limit_cycle": {"arm_periods": 1.5}}},
      r"supervisor\.monitors\.limit_cycle\.arm_periods=1\.5 must be a whole number of "
      r"reference periods in \[0, 100\]"),

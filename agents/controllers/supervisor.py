@@ -157,9 +157,9 @@ class LimitCycle(Monitor):
 
     name: ClassVar[str] = "limit_cycle"
     what: ClassVar[str] = "the RMS of the error's one-period change"
-    level_mm: float = 0.68
+    level_mm: float = 1.414
     window_s: float = 3.0
-    clip_mm: float | None = 0.85
+    clip_mm: float | None = 1.768
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -211,7 +211,7 @@ class Stage:
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
 DEFAULT_STAGES = (Stage("policy", ("divergence", "limit_cycle", "persistent")),
                   Stage("afc", ("divergence",), GRACE_PERIODS),
-                  Stage("pid"))
+                  Stage("rc"))
 # The flat section that run folders written before the cascade was declared hold: its keys and
 # what an omitted one meant then (it is how those runs were evaluated; never change it).
 FLAT_KEYS = {"fallback": "pid", "error_mm": 15.0, "error_window_s": 0.5, "aperiodic_mm": 3.0,

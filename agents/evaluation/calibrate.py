@@ -8,15 +8,19 @@ seeds), and its rule is stated:
 
 - the policy alone and every candidate fallback (``CANDIDATES``) run one episode of
   ``episode_s`` on each of ``n_plants`` draws;
-- the fallback order is the candidates sorted by their mean position RMSE over the plants
-  (an unstable or terminated episode counts ``FAILED_MM``): the first drives after the policy,
-  the second after the first;
+- the fallback order is the candidates sorted by their mean position RMSE (an unstable or
+  terminated episode counts ``FAILED_MM``) over the plants a fallback is for, those on which
+  the policy alone is unstable or tracks worse than a candidate: the first drives after the
+  policy, the second after the first;
 - a plant is one the policy must keep where the policy alone tracks at least as well as the
   first fallback would and its loop is stable (the sweep's criterion,
   ``mpa_gym.agents.evaluation.robustness.cell_metrics``);
 - each monitor of the policy's stage gets the level ``margin`` × the highest running RMS it
   reaches on those plants (replayed offline on the episode's error, as the supervisor computes
-  it online), never below ``floor_mm``: so on no plant the policy should keep would it fire,
+  it online), never below ``floor_mm`` (the limit-cycle monitor never below √2 ×
+  ``UNSTABLE_APERIODIC_MM``, the sweep's instability criterion made causal: it fires on
+  instability, not on the quantum and friction of a loop that tracks): so on no plant the
+  policy should keep would it fire,
   with a margin for plants between the draws; a monitor that would have to sit above the
   allowed levels (``LEVEL_MAX_MM``) to stay quiet there is dropped.
 
@@ -27,6 +31,7 @@ the order into the run folder's ``config.yaml`` (the old one kept beside it).
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 from typing import Any
 
@@ -36,11 +41,12 @@ import yaml
 from mpa_gym.agents.controllers.supervisor import (
     LEVEL_MAX_MM,
     Divergence,
+    LimitCycle,
     Stage,
     SupervisorSpec,
 )
 from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes
-from mpa_gym.agents.evaluation.robustness import cell_metrics
+from mpa_gym.agents.evaluation.robustness import UNSTABLE_APERIODIC_MM, cell_metrics
 from mpa_gym.agents.learned.config import EVAL_SEED, load_config
 from mpa_gym.agents.learned.policies import ALONE, load_policy
 from mpa_gym.analysis.scenario import load_scenario
@@ -60,6 +66,7 @@ class Calibration:
 
     spec: SupervisorSpec
     order: list[tuple[str, float]]  # candidates with their mean RMSE [mm], best first
+    ordered_on: int  # the plants the order was measured on (those a fallback is for)
     kept: int  # plants the policy keeps (tracks at least as well as the first fallback)
     n_plants: int
     peaks_mm: dict[str, float]  # per monitor, the highest RMS on the kept plants
@@ -77,6 +84,7 @@ class Calibration:
                 "rule": self.spec.describe(),
                 "fallback_order": [{"controller": c, "mean_position_rmse_mm": v}
                                    for c, v in self.order],
+                "ordered_on_plants": self.ordered_on,
                 "kept_plants": self.kept, "n_plants": self.n_plants,
                 "peaks_mm": self.peaks_mm, "dropped": self.dropped}
 
@@ -134,10 +142,15 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
     def score(m: dict[str, Any]) -> float:
         return FAILED_MM if m["unstable"] else float(m["position_rmse_mm"])
 
-    order = sorted(((c, float(np.mean([score(m) for m in cells[c]]))) for c in CANDIDATES),
-                   key=lambda cv: cv[1])
-    first = order[0][0]
     policy = cells[scored[0]]
+    # the fallback order, by the mean over the plants a fallback is for: those where the policy
+    # alone is unstable or tracks worse than some candidate (all plants if there are none)
+    lost = np.array([p["unstable"] or any(score(p) > score(cells[c][j]) for c in CANDIDATES)
+                     for j, p in enumerate(policy)])
+    where = lost if lost.any() else np.ones(n_plants, dtype=bool)
+    order = sorted(((c, float(np.mean([score(m) for m in np.array(cells[c])[where]])))
+                    for c in CANDIDATES), key=lambda cv: cv[1])
+    first = order[0][0]
     keep = np.array([not p["unstable"] and score(p) <= score(f)
                      for p, f in zip(policy, cells[first], strict=True)])
     n_period = max(1, round(period / dt))
@@ -149,7 +162,12 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
         peak = (float(running_rms(m, errors[scored[0]][:, keep], n_period, dt).max())
                 if keep.any() else 0.0)
         peaks[m.name] = peak
-        level = max(margin * peak, floor_mm)
+        # never below the level a loop the sweep calls stable can reach: an aperiodic part of
+        # RMS ρ gives the limit-cycle monitor ≈ √2 ρ (fire on instability, not on the noise,
+        # quantum and friction of a loop that tracks)
+        floor = (math.sqrt(2.0) * UNSTABLE_APERIODIC_MM if isinstance(m, LimitCycle)
+                 else floor_mm)
+        level = max(margin * peak, floor)
         if not isinstance(m, Divergence) and level >= LEVEL_MAX_MM:
             dropped.append(m.name)
             continue
@@ -166,7 +184,8 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
     else:
         stages[-1] = Stage(first)
     spec = SupervisorSpec(tuple(monitors), tuple(stages))
-    return Calibration(spec, order, int(keep.sum()), n_plants, peaks, dropped)
+    return Calibration(spec, order, int(where.sum()), int(keep.sum()), n_plants, peaks,
+                       dropped)
 
 
 def write(run_dir: str | Path, cal: Calibration) -> Path:
