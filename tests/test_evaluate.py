@@ -42,12 +42,16 @@ HAIR_TRIGGER = {"level_mm": 0.05, "window_s": 0.5, "clip_mm": None, "arm_periods
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """Two runs (seeds 0 and 1) of the default config with a hair-trigger divergence monitor,
-    named ``w-s0`` and ``w-s1`` (one group)."""
+    """Two runs (seeds 0 and 1) of the default config with a hair-trigger divergence monitor
+    handing over to pid, named ``w-s0`` and ``w-s1`` (one group)."""
     tmp = tmp_path_factory.mktemp("who")
 
     def hair_trigger(cfg):
-        cfg["mpa_gym"]["supervisor"]["monitors"]["divergence"] = HAIR_TRIGGER
+        sup = cfg["mpa_gym"]["supervisor"]
+        sup["monitors"]["divergence"] = HAIR_TRIGGER
+        sup["stages"] = [{"controller": "policy", "monitors": ["divergence"]},  # pid first
+                         {"controller": "pid", "monitors": ["divergence"], "grace_periods": 1},
+                         {"controller": "afc"}]
 
     path = tiny_config(tmp, hair_trigger, n_timesteps=256, n_epochs=1)
     return [str(train(path, tmp / f"w-s{s}", s, progress=False)) for s in (0, 1)]
