@@ -576,6 +576,22 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def _check_device(device: str) -> None:
+    """``--device`` before any work: a URL the link can parse (``open_transport``'s forms), and
+    a serial device that exists on this machine (a missing one is a typo, not a rig fault)."""
+    import urllib.parse
+
+    if not device.strip():
+        raise ValueError(f"--device {device!r} is empty: give serial:///dev/ttyX or "
+                         "udp://HOST:PORT")
+    serial = "://" not in device or device.lower().startswith("serial://")
+    path = urllib.parse.urlsplit(device).path if "://" in device else device
+    if serial and path and not path.lstrip("/").upper().startswith("COM") \
+            and not Path(path).exists():
+        raise ValueError(f"--device {device!r}: no serial device {path!r} on this machine "
+                         "(serial:///dev/ttyX or udp://HOST:PORT)")
+
+
 def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.agents.rig.rollout import rollout
 
@@ -600,6 +616,8 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
     elif device is None:
         raise ValueError("--device is required unless --dry-run (serial:///dev/ttyX or "
                          "udp://HOST:PORT)")
+    else:
+        _check_device(device)
     from mpa_gym.hardware.env import HardwareFault
     from mpa_gym.hardware.transport import TransportError
 

@@ -252,6 +252,10 @@ OTHER = [
     (["rollout", "--policy", "ff", "--log", "{tmp}/r.jsonl"], ["--device"]),
     (["rollout", "--policy", "ff", "--device", "ftp://x", "--log", "{tmp}/r.jsonl"],
      ["ftp://x"]),
+    (["rollout", "--policy", "ff", "--device", "", "--log", "{tmp}/r.jsonl"],
+     ["--device", "empty"]),
+    (["rollout", "--policy", "ff", "--device", "serial:///nonexistent", "--log",
+      "{tmp}/r.jsonl"], ["--device", "/nonexistent", "no serial device"]),
     (["bench", "--seconds", "0"], ["--seconds", "0"]),
     (["bench", "--sizes", "0"], ["--sizes", "0"]),
     # issue 34: refused before work, naming the flag (were tracebacks, silent or unclear)
