@@ -896,7 +896,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which session of the log to fit (index, negative from the end; "
                         "default the newest)")
     g = p.add_argument_group("coverage check (agents/rig/coverage.py): instead of --log, draw N "
-                             "rigs from the training ranges, excite each on an emulator process "
+                             "rigs from configs/rigs/coverage.yaml, excite each on an emulator process "
                              "in real time, identify, print the share whose intervals hold the "
                              "truth")
     g.add_argument("--coverage", type=int, default=None, metavar="N", help="rigs to draw")

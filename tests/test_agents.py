@@ -15,7 +15,7 @@ import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.evaluation.episodes import metrics, run_episode
 from mpa_gym.agents.evaluation.evaluate import evaluate, write_report
-from mpa_gym.agents.learned.config import ConfigError, load_config, parse_config
+from mpa_gym.agents.learned.config import DEFAULT_CONFIG, ConfigError, load_config, parse_config
 from mpa_gym.agents.learned.policies import load_run
 from mpa_gym.agents.learned.wrappers import (
     FeatureSpec,
@@ -219,9 +219,10 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
         obs, *_ = env.step(direct[0])
         np.testing.assert_array_equal(via, env.env.state["prev"][0][0])  # what the env was given
     # the model saw the tracking-error features alone (the env's X, X̂, pressures… left out):
-    # errors, integrals, the resonant pair and the previous action
+    # errors, integrals, the remodulated pairs and the actions in flight
     f = policy.features
-    assert f.errors_only and obs.shape == (2 + f.n_integrals + 2 + 2 * f.previous_action,)
+    assert f.errors_only and obs.shape == (2 + f.n_integrals + 2 * f.harmonics * f.remodulate
+                                           + 2 * f.n_actions,)
 
 
 class _LastObservation(gym.Wrapper):
@@ -435,7 +436,10 @@ def test_tuning_runs_on_the_training_plants_and_says_so():
     r = tune("pid", n_trials=2, n_plants=2, episode_s=9.0)
     assert r["mean_position_rmse_mm"] <= r["default_mean_position_rmse_mm"]
     assert set(r["gains"]) == {"kp_bar_per_m", "ki_bar_per_m_s", "kd_bar_s_per_m", "tf_s"}
-    assert r["tuned_on"]["randomize"]["pressure_dead_time_s"] == [0.0, 0.03]
+    # the ranges are the training config's, every effect on (its p_off left out)
+    ranges = {k: [lo, hi] for k, lo, hi in load_scenario(
+        load_config(DEFAULT_CONFIG).env_kwargs["scenario"]).randomize.ranges}
+    assert r["tuned_on"]["randomize"]["pressure_dead_time_s"] == ranges["pressure_dead_time_s"]
     assert not {"kick_force_N", "kick_t_s", "kick_duration_s"} & set(r["tuned_on"]["randomize"])
     sc, plants = training_plants(n_plants=2, episode_s=9.0)
     # two draws, then their undamped twins: the same plant, the leg's damping at the low end

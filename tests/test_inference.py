@@ -207,16 +207,31 @@ def _as_written_before_0_2(model_zip):
 def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_path):
     # run folders written before the app moved into mpa_gym.agents name the wrappers
     # agents.wrappers.…, their model file the policy class agents.anchor.RestAnchoredPolicy,
-    # and give the supervisor in its flat form (the default config's levels); such a folder
-    # loads, supervised and not, and acts exactly as today's
+    # and give the supervisor in its flat form (the default config's levels then); such a folder
+    # loads, supervised and not, and acts exactly as today's folder declaring that cascade
+    flat = {"fallback": "pid", "aperiodic_mm": 0.4, "aperiodic_clip_mm": 0.5,
+            "persistent_mm": 2.0, "persistent_clip_mm": 3.0, "last_resort": "afc"}
+    declared = {  # written out by hand: what the flat form meant (error_mm 15 over 0.5 s, the
+        # aperiodic window shared by both, armed after 2 periods, the fallback given 1 to settle)
+        "monitors": {
+            "divergence": {"level_mm": 15.0, "window_s": 0.5, "clip_mm": None, "arm_periods": 0},
+            "limit_cycle": {"level_mm": 0.4, "window_s": 3.0, "clip_mm": 0.5, "arm_periods": 2},
+            "persistent": {"level_mm": 2.0, "window_s": 3.0, "clip_mm": 3.0, "arm_periods": 2}},
+        "stages": [{"controller": "policy",
+                    "monitors": ["divergence", "limit_cycle", "persistent"]},
+                   {"controller": "pid", "monitors": ["divergence"], "grace_periods": 1},
+                   {"controller": "afc"}]}
+    today = tmp_path / "today_run"
+    shutil.copytree(tiny_run, today)
+    cfg = yaml.safe_load((today / "config.yaml").read_text())
+    cfg["mpa_gym"]["supervisor"] = declared
+    (today / "config.yaml").write_text(yaml.safe_dump(cfg))
     old = tmp_path / "old_run"
     shutil.copytree(tiny_run, old)
     cfg = yaml.safe_load((old / "config.yaml").read_text())
     text = yaml.safe_dump(cfg).replace("mpa_gym.agents.learned.wrappers.", "agents.wrappers.")
     cfg = yaml.safe_load(text)
-    cfg["mpa_gym"]["supervisor"] = {"fallback": "pid", "aperiodic_mm": 0.4,
-                                    "aperiodic_clip_mm": 0.5, "persistent_mm": 2.0,
-                                    "persistent_clip_mm": 3.0, "last_resort": "afc"}
+    cfg["mpa_gym"]["supervisor"] = flat
     (old / "config.yaml").write_text(yaml.safe_dump(cfg))
     _as_written_before_0_2(old / "model.zip")
     with pytest.raises(ModuleNotFoundError, match="agents"):  # what SB3 alone makes of it
@@ -225,7 +240,7 @@ def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_p
     env = gym.make("MPALegResidual-v0", scenario="heldout_a")
     obs = np.stack([env.reset(seed=s)[0] for s in range(6)])
     obs[:, 0] += np.linspace(-0.01, 0.01, 6)  # off the reference: the features are not zero
-    now, _, cfg_now = load_policy(str(tiny_run))
+    now, _, cfg_now = load_policy(str(today))
     then, _, cfg_then = load_policy(str(old))
     assert cfg_now.observation_wrapper == cfg_then.observation_wrapper
     assert cfg_now.action_wrapper == cfg_then.action_wrapper

@@ -201,14 +201,19 @@ def test_an_observation_of_another_wrapper_chain_or_env_is_refused_by_name(run, 
 
 def test_model_zip_alone_takes_features_and_the_run_folder_says_so(run):
     # what SB3 does with the bare model file (the reason for README.txt): predict checks the
-    # shape only, so the env's observation (9 wide, as the features) is taken without a word;
+    # shape only, so any array of the features' width is taken without a word (the env's own
+    # observation too, where the widths coincide: 9 and 9 with one previous action) and the
+    # default's raw observation (9 wide; its features 31) is refused for its shape alone;
     # load with the env checks the spaces and refuses
     from stable_baselines3 import PPO
 
     model = PPO.load(run / "model.zip", device="cpu")
     obs, _ = gym.make("MPALegResidual-v0", scenario="load_1kg").reset(seed=0)
-    assert model.observation_space.shape == obs.shape
-    model.predict(obs, deterministic=True)
+    assert model.observation_space.shape != obs.shape
+    with pytest.raises(ValueError, match="Unexpected observation shape"):
+        model.predict(obs, deterministic=True)
+    unnormalised = np.full(model.observation_space.shape, 5.0, dtype=np.float32)
+    model.predict(unnormalised, deterministic=True)  # not features, and not normalised: taken
     with pytest.raises(ValueError, match="Observation spaces do not match"):
         PPO.load(run / "model.zip", env=gym.make("MPALegResidual-v0"), device="cpu")
     text = (run / "README.txt").read_text()

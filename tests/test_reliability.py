@@ -519,8 +519,8 @@ def test_train_config_validates_itself(kwargs, want):
 @pytest.fixture(scope="module")
 def run_folders(tmp_path_factory) -> dict[str, str]:
     """A tiny trained run and copies of it whose config.yaml is broken YAML or names another
-    observation wrapper than the model was trained with (harmonics 3: 17-wide observations
-    against the model's 9)."""
+    observation wrapper than the model was trained with (harmonics 3: two more integral pairs
+    and two more remodulated pairs, 39-wide observations against the model's 31)."""
     import shutil
 
     from conftest import tiny_config
@@ -545,7 +545,7 @@ def run_folders(tmp_path_factory) -> dict[str, str]:
     (["{run}", "{run}"], ["--policy", "r-s0", "once"]),
     # the policies alone of two runs: grouped by their configs before anything read them
     (["{broken-s0}:alone", "{broken-s1}:alone"], ["broken-s0", "config.yaml", "not valid YAML"]),
-    (["{mismatch}"], ["mismatch", "17-wide", "(9,)", "does not match its model"]),
+    (["{mismatch}"], ["mismatch", "39-wide", "(31,)", "does not match its model"]),
 ])
 def test_evaluate_refuses_a_run_it_cannot_report_naming_it(policies, want, run_folders,
                                                             tmp_path, capsys):

@@ -27,6 +27,7 @@ from mpa_gym.agents.learned.config import ConfigError, load_config
 from mpa_gym.agents.learned.policies import ALONE
 from mpa_gym.agents.training.tune import (
     DEFAULT_SPACE,
+    OBJECTIVES,
     apply_params,
     current_params,
     fail_orphans,
@@ -160,8 +161,14 @@ def test_a_combination_ppo_refuses_is_pruned_and_named(tmp_path):
     # The default space holds n_steps 32 with n_envs 16 and batch_size 1024: a 512-sample
     # rollout that PPO cannot split into 1024-sample minibatches. Such a trial is pruned
     # before training, with the config's own message, and the worker goes on to the next.
+    # (The tiny config's rollout is 4 x 32 = 128 samples: batch_size 64 fits, 256 does not;
+    # the two 256 trials are queued, as a sampler would draw them.)
     db = f"sqlite:///{tmp_path}/s.db"
-    cfg = tiny_tune_config(tmp_path / "c.yaml", {"batch_size": {"categorical": [256]}})
+    cfg = tiny_tune_config(tmp_path / "c.yaml", {"batch_size": {"categorical": [64, 256]}})
+    study = optuna.create_study(storage=db, study_name="bad",
+                                directions=["minimize"] * len(OBJECTIVES["both"]))
+    for _ in range(2):
+        study.enqueue_trial({"batch_size": 256})
     tune(cfg, db, "bad", n_trials=2, heldout=[str(short_heldout(tmp_path / "h.yaml"))],
          out_dir=tmp_path / "runs")
     trials = optuna.load_study(study_name="bad", storage=db).trials
@@ -170,6 +177,17 @@ def test_a_combination_ppo_refuses_is_pruned_and_named(tmp_path):
         assert t.state == TrialState.PRUNED and t.params["batch_size"] == 256
         assert "batch_size=256 must be <= n_steps * n_envs" in t.user_attrs["invalid"]
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("model.zip"))
+
+
+def test_a_space_no_trial_can_satisfy_is_refused_before_any_trial(tmp_path):
+    # every point pruned would be a study that exits 0 having tuned nothing
+    db = f"sqlite:///{tmp_path}/s.db"
+    cfg = tiny_tune_config(tmp_path / "c.yaml", {"batch_size": {"categorical": [256]}})
+    with pytest.raises(ConfigError, match=r"no point of the search space makes a valid config"
+                       r".*batch_size=256 must be <= n_steps \* n_envs = 128"):
+        tune(cfg, db, "bad", n_trials=2, heldout=[str(short_heldout(tmp_path / "h.yaml"))],
+             out_dir=tmp_path / "runs")
+    assert optuna.get_all_study_names(db) == []
 
 
 def test_position_objective_reports_and_prunes_per_seed_step(tmp_path):

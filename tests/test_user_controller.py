@@ -178,9 +178,11 @@ def test_tuned_gains_file_round_trip(tmp_path, capsys):
         assert got[k] == pytest.approx(mine[k], rel=1e-12), k
     assert got["position_rmse_mm"] != pytest.approx(theirs["position_rmse_mm"], rel=1e-3)
     assert "given with --gains" in report["controllers"]["pid"]
-    # a run config's supervisor reads the same file: its fallback runs with those gains
+    # a run config's supervisor reads the same file: its pid fallback runs with those gains
     raw = yaml.safe_load(open(os.path.join(REPO, "configs", "ppo_residual.yaml")))
-    raw["mpa_gym"]["supervisor"] = {"gains": str(path)}
+    raw["mpa_gym"]["supervisor"] = {
+        "gains": str(path), "stages": [{"controller": "policy", "monitors": ["divergence"]},
+                                       {"controller": "pid"}]}
     sup = supervise(make_baseline("ff"), parse_config(raw, "cfg.yaml"))
     assert {k: getattr(sup.controllers[0], k) for k in gains} == gains
 

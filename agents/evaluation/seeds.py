@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from mpa_gym.agents.learned.config import DEFAULT_CONFIG, SEED_MAX, load_config
+from mpa_gym.agents.learned.config import DEFAULT_CONFIG, SEED_MAX, load_config, with_scenario
 from mpa_gym.agents.learned.policies import ALONE_LABEL, run_of, spec_label
 from mpa_gym.agents.learned.runs import read_run_config
 from mpa_gym.files import check_out_dir
@@ -69,8 +69,6 @@ def train_seeds(seeds: list[int], config: str | Path | None = None,
     if scenario is None:
         load_config(config)
     else:
-        from mpa_gym.agents.training.train import with_scenario  # torch: only when training
-
         with_scenario(config, scenario)
     base = Path(run_dir) if run_dir else Path("runs") / config.stem
     folders = [base.parent / f"{base.name}-s{s}" for s in seeds]

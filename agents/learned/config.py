@@ -446,3 +446,19 @@ def _is_float(s: str) -> bool:
 def load_config(path: str | Path) -> TrainConfig:
     """The training config in the YAML file ``path``."""
     return parse_config(read_yaml(path, "config file", ConfigError), str(path))
+
+
+def with_scenario(config: str | Path | None, scenario: str | Path) -> TrainConfig:
+    """The config with its training scenario (``env_kwargs.scenario``) replaced by ``scenario``:
+    a built-in name is kept as the name, a YAML file (``mpa-gym identify --out``) is copied in,
+    so the run folder's config.yaml holds the plants it was trained on."""
+    sc = load_scenario(scenario)  # a missing file or a bad scenario: its error, before anything
+    src = str(config or DEFAULT_CONFIG)
+    cfg = load_config(src)
+    entry: Any = str(scenario) if not Path(scenario).suffix else read_yaml(
+        scenario, "scenario file", ConfigError)
+    if isinstance(entry, dict):
+        entry.setdefault("name", sc.name)
+    data = copy.deepcopy(cfg.raw)
+    data[cfg.env_id].setdefault("env_kwargs", {})["scenario"] = entry
+    return parse_config(data, f"{src} with --scenario {scenario}")

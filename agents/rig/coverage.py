@@ -1,10 +1,10 @@
 """Coverage of identification's intervals over random emulated rigs:
 ``mpa-gym identify --coverage N [--seed S] [--episode-s S] [--jobs J] [--coverage-dir DIR]``.
 
-Each of N rigs is a plant drawn at random from the training ranges of the default training
-config (``configs/ppo_residual.yaml``'s ``randomize``, with its ``p_off`` coins, so an effect is
-absent in about half the rigs; they hold ``configs/rigs/offnominal.yaml``'s values), with the
-encoder noise of that rig. For each rig, as on a real one: the device emulator plays it in its
+Each of N rigs is a plant drawn at random from ``configs/rigs/coverage.yaml``'s ranges (the
+default training config's as the intervals were validated on, dead times to 30 ms: the file
+says why), with their ``p_off`` coins, so an effect is absent in about half the rigs; they hold
+``configs/rigs/offnominal.yaml``'s values, and the rigs have the encoder noise of that rig. For each rig, as on a real one: the device emulator plays it in its
 own process (``mpa-gym emulate --udp``), the excitation drives it in real time over the link
 (``excite_rollout``: ``mpa-gym rollout --policy excite``), ``mpa-gym identify --out`` fits the
 log and writes a scenario. Each step is a subprocess (``PYTHONPATH`` chooses the code under
@@ -25,6 +25,7 @@ on a fresh emulator and log. Each rig's record (truth, fit, score) is appended t
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -38,8 +39,10 @@ from typing import Any
 
 import numpy as np
 
+from mpa_gym.agents.rig import rollout as ro
 from mpa_gym.analysis.scenario import load_scenario
-from mpa_gym.configs import DEFAULT_TRAIN_CONFIG, RIG_DIR
+from mpa_gym.configs import RIG_DIR
+from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.model.params import DEFAULT_PARAMS, check_range
 
 # the plant keys scored, in the order printed; "mass_kg" is the total mass
@@ -51,17 +54,10 @@ WATCHDOG_S = 0.5  # [s] the emulator's vent watchdog (tests/test_identify.py's, 
 STALE_S = 0.2  # [s] the rollout's telemetry staleness limit (``excite_rollout``)
 
 
-def training_randomization() -> Any:
-    """The ``randomize`` of the default training config's scenario."""
-    import yaml
-
-    cfg = yaml.safe_load(DEFAULT_TRAIN_CONFIG.read_text())
-    return load_scenario(cfg["MPALegResidual-v0"]["env_kwargs"]["scenario"]).randomize
-
-
 def draw_rigs(n: int, seed: int) -> list[dict[str, float]]:
-    """``n`` plants (scenario ``plant`` dicts) drawn from the training ranges."""
-    rnd = training_randomization()
+    """``n`` plants (scenario ``plant`` dicts) drawn from ``configs/rigs/coverage.yaml``'s
+    ranges (the training plants the intervals were validated on; that file says why)."""
+    rnd = load_scenario(RIG_DIR / "coverage.yaml").randomize
     rng = np.random.default_rng(seed)
     return [{k: v for k, v in rnd.sample(rng).items() if k in SCORED or k in (
         "extra_mass_kg", "thickness_m")} for _ in range(n)]
@@ -114,8 +110,6 @@ def _run(args: list[str], timeout: float) -> subprocess.CompletedProcess[str]:
 
 def one_rig(i: int, plant: dict[str, float], folder: Path, episode_s: float) -> dict[str, Any]:
     """Roll ``excite`` out on an emulator playing ``plant``, identify, score."""
-    from mpa_gym.hardware.emulator import EmulatorProcess
-
     noise = load_scenario(RIG_DIR / "offnominal.yaml").plant.position_noise_m
     log = folder / f"rig{i:03d}.jsonl"
     rec: dict[str, Any] = {"rig": i, "plant": plant, "truth": truth_of(plant), "log": str(log)}
@@ -205,10 +199,6 @@ def excite_rollout(device: str, log: str | Path, episode_s: float) -> dict[str, 
     ``STALE_S`` (as the rig tests do): a loaded machine's scheduling hiccup then does not stop
     an excitation whose log is all that is needed (a rig's limits are for its safety, the
     emulator's watchdog, ``WATCHDOG_S``, still vents)."""
-    import functools
-
-    from mpa_gym.agents.rig import rollout as ro
-
     env = ro.HardwareLegEnv
     ro.HardwareLegEnv = functools.partial(env, stale_s=STALE_S)
     try:

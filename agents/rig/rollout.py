@@ -28,6 +28,7 @@ import json
 import math
 import os
 import signal
+import tempfile
 import time
 from pathlib import Path
 from typing import IO, Any
@@ -44,6 +45,7 @@ from mpa_gym.agents.controllers.supervisor import (
 )
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
 from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.env import (
     CONTROL_HZ,
@@ -325,10 +327,6 @@ def loop_benchmark(policy_spec: str, control_hz: float = 100.0, loop_s: float = 
     against a device emulator in another process playing ``rig``, side by side so that both
     see the same machine. Returns each pair and the medians of overrun %, p99 jitter and
     median command latency."""
-    import tempfile
-
-    from mpa_gym.analysis.scenario import load_scenario
-
     check_range("--control-hz", control_hz, *CONTROL_HZ_RANGE, unit="Hz")
     check_range("--loop-s", loop_s, 1.0, 600.0, unit="s")
     if isinstance(repeats, bool) or not isinstance(repeats, int) or not 1 <= repeats <= 100:

@@ -53,7 +53,7 @@ from mpa_gym.agents.learned.config import (
     ConfigError,
     TrainConfig,
     load_config,
-    parse_config,
+    with_scenario,
 )
 from mpa_gym.agents.learned.runs import (
     cut_eval_history,
@@ -77,13 +77,11 @@ from mpa_gym.agents.training.callbacks import (
     model_is_finite,
     say,
 )
-from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.envs.sb3 import SB3VecEnv
 from mpa_gym.files import (
     DamagedFileError,
     atomic_write_text,
     check_out_dir,
-    read_yaml,
     remove_stale_temporaries,
 )
 
@@ -188,22 +186,6 @@ def _new_model(cfg: TrainConfig, env: VecEnv, run: Path, seed: int, verbose: int
         policy = RestAnchoredPolicy
     return PPO(policy, env, policy_kwargs=pk, seed=seed, device="cpu",
                tensorboard_log=str(run / "tb"), verbose=verbose, **ppo_kwargs)
-
-
-def with_scenario(config: str | Path | None, scenario: str | Path) -> TrainConfig:
-    """The config with its training scenario (``env_kwargs.scenario``) replaced by ``scenario``:
-    a built-in name is kept as the name, a YAML file (``mpa-gym identify --out``) is copied in,
-    so the run folder's config.yaml holds the plants it was trained on."""
-    sc = load_scenario(scenario)  # a missing file or a bad scenario: its error, before anything
-    src = str(config or DEFAULT_CONFIG)
-    cfg = load_config(src)
-    entry: Any = str(scenario) if not Path(scenario).suffix else read_yaml(
-        scenario, "scenario file", ConfigError)
-    if isinstance(entry, dict):
-        entry.setdefault("name", sc.name)
-    data = copy.deepcopy(cfg.raw)
-    data[cfg.env_id].setdefault("env_kwargs", {})["scenario"] = entry
-    return parse_config(data, f"{src} with --scenario {scenario}")
 
 
 def train(config: str | Path | None = None, run_dir: str | Path | None = None,
