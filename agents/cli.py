@@ -896,9 +896,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which session of the log to fit (index, negative from the end; "
                         "default the newest)")
     g = p.add_argument_group("coverage check (agents/rig/coverage.py): instead of --log, draw N "
-                             "rigs from configs/rigs/coverage.yaml, excite each on an emulator process "
-                             "in real time, identify, print the share whose intervals hold the "
-                             "truth")
+                             "rigs from configs/rigs/coverage.yaml, excite each on an emulator "
+                             "process in real time, identify, print the share whose intervals "
+                             "hold the truth")
     g.add_argument("--coverage", type=int, default=None, metavar="N", help="rigs to draw")
     g.add_argument("--seed", type=int, default=0, help="of the draws (default 0)")
     g.add_argument("--episode-s", type=float, default=30.0, metavar="S",

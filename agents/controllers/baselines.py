@@ -173,6 +173,16 @@ class _PlanPolicy:
                             axis=-1)[rows]
         return st
 
+    def _antagonistic(self, u: np.ndarray, st: np.ndarray, single: bool
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """(action, state) of an antagonistic correction ``u`` (n,) [bar]: the residual
+        (+u, −u) in the env's [−1, 1] units, clipped, the clipping recorded in ``st``
+        (``_saturated``); one row unbatched if ``single``."""
+        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
+        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
+        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
+        return (a[0] if single else a), st
+
     @staticmethod
     def _saturated(st: np.ndarray, u: np.ndarray, clipped: np.ndarray) -> None:
         """Record in the state's last column where the output ``u`` was clipped, in u's
@@ -236,10 +246,7 @@ class PIDResidual(_PlanPolicy):
         obs, single = _batch(observation)
         u, st = self._pid(obs, state, episode_start, self.kp_bar_per_m, self.ki_bar_per_m_s,
                           self.kd_bar_s_per_m, self.tf_s)
-        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
-        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
-        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
-        return (a[0] if single else a), st
+        return self._antagonistic(u, st, single)
 
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
                   rows: np.ndarray) -> np.ndarray:
@@ -298,10 +305,7 @@ class AdaptiveFeedforward(_PlanPolicy):
                             e * self.cfg.dt_s / (tau * gain))
         st[:, :3] += rate[:, None] * basis * np.array([1.0, 2.0, 2.0])
         u = np.einsum("ij,ij->i", st[:, :3], basis)
-        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
-        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
-        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
-        return (a[0] if single else a), st
+        return self._antagonistic(u, st, single)
 
 
 class RepetitiveDesign(NamedTuple):
@@ -475,10 +479,7 @@ class RepetitiveControl(PIDResidual):
         u, st[:, pid] = self._pid(obs, None if state is None else st[:, pid], episode_start,
                                   self.kp_bar_per_m, self.ki_bar_per_m_s, self.kd_bar_s_per_m,
                                   self.tf_s, r)
-        raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
-        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
-        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
-        return (a[0] if single else a), st
+        return self._antagonistic(u, st, single)
 
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
                   rows: np.ndarray) -> np.ndarray:

@@ -35,6 +35,7 @@ contract's bounds, naming the env id and the shape it takes. The default config'
 
 from __future__ import annotations
 
+import abc
 import functools
 from dataclasses import dataclass
 from typing import Any
@@ -117,7 +118,7 @@ class ObservationCheck:
                           f"{high[c]:g}]; {take}")
 
 
-class Episodic:
+class Episodic(abc.ABC):
     """A policy that keeps its episode state between calls (the module docstring says how).
 
     A subclass computes the action in ``_predict`` (SB3's ``predict`` on an explicit state:
@@ -128,9 +129,10 @@ class Episodic:
     _kept: Any = None  # the state the last call returned
     _kept_rows: int = 0
 
+    @abc.abstractmethod
     def _predict(self, observation: Any, state: Any, episode_start: Any,
                  deterministic: bool) -> tuple[np.ndarray, Any]:
-        raise NotImplementedError
+        """SB3's ``predict`` on an explicit state (the subclass's policy)."""
 
     def reset(self) -> None:
         """The next call starts an episode on every row (call it where ``env.reset()`` is)."""

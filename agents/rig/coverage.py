@@ -2,13 +2,14 @@
 ``mpa-gym identify --coverage N [--seed S] [--episode-s S] [--jobs J] [--coverage-dir DIR]``.
 
 Each of N rigs is a plant drawn at random from ``configs/rigs/coverage.yaml``'s ranges (the
-default training config's as the intervals were validated on, dead times to 30 ms: the file
-says why), with their ``p_off`` coins, so an effect is absent in about half the rigs; they hold
-``configs/rigs/offnominal.yaml``'s values, and the rigs have the encoder noise of that rig. For each rig, as on a real one: the device emulator plays it in its
-own process (``mpa-gym emulate --udp``), the excitation drives it in real time over the link
-(``excite_rollout``: ``mpa-gym rollout --policy excite``), ``mpa-gym identify --out`` fits the
-log and writes a scenario. Each step is a subprocess (``PYTHONPATH`` chooses the code under
-test), so a rig whose rollout or fit fails is counted and the run goes on.
+default training config's as the intervals were validated on, dead times to 30 ms: the file says
+why), with their ``p_off`` coins, so an effect is absent in about half the rigs; they hold
+``configs/rigs/offnominal.yaml``'s values, and the rigs have the encoder noise of that rig. For
+each rig, as on a real one: the device emulator plays it in its own process (``mpa-gym emulate
+--udp``), the excitation drives it in real time over the link (``excite_rollout``: ``mpa-gym
+rollout --policy excite``), ``mpa-gym identify --out`` fits the log and writes a scenario. Each
+step is a subprocess (``PYTHONPATH`` chooses the code under test), so a rig whose rollout or fit
+fails is counted and the run goes on.
 
 What is scored is the written scenario, i.e. what training on the identified rig draws from: a
 plant key is covered when the truth lies in its ``randomize`` range (a range with ``p_off`` also
