@@ -333,16 +333,26 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     check_out_dir("--out", a.out)
     if not 0 <= a.seed <= 2**32 - 1:
         raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
+    if a.random_rigs < 0:
+        raise ValueError(f"--random-rigs={a.random_rigs} must be 0 (none) or more")
+    if a.rigs_seed is None:
+        from mpa_gym.agents.evaluation.rigs import RIGS_SEED
+
+        a.rigs_seed = RIGS_SEED
+    if not 0 <= a.rigs_seed <= 2**32 - 1:
+        raise ValueError(f"--rigs-seed={a.rigs_seed} must be in [0, 4294967295]")
     scenarios = a.scenarios or [*PAPER_SCENARIOS, *HELDOUT_SCENARIOS]
     report = evaluate(a.policy, scenarios, a.seed, robustness=not a.no_robustness,
-                      plots_dir=Path(a.out) / "plots", gains=_gains(a))
+                      plots_dir=Path(a.out) / "plots", gains=_gains(a),
+                      random_rigs=a.random_rigs, rigs_seed=a.rigs_seed)
     paths = write_report(report, a.out)
     data = json.loads(paths["json"].read_text())
     return {"summary": data["summary"], "results": data["results"],
             "robustness": data.get("robustness"),
             "groups": data.get("groups") or {}, "no_harm": data.get("no_harm") or {},
             "stages": data.get("stages") or {}, "hand_overs": hand_over_lines(report),
-            "report_json": str(paths["json"]), "report_md": str(paths["markdown"]),
+            "random_rigs": data.get("random_rigs"), "report_json": str(paths["json"]),
+            "report_md": str(paths["markdown"]),
             "plots": str(paths["plots"])}
 
 
@@ -377,6 +387,18 @@ def show_evaluate(o: dict[str, Any]) -> str:
                  for lv, per in levels.items()]
         extra = ("\n\nrobustness levels, position RMSE [mm] (grids in the report)\n"
                  + _table(lrows, ["level", *next(iter(levels.values()))]))
+    rr = o.get("random_rigs")
+    if rr:
+        extra += (f"\n\nrandom rigs ({rr['n']}, seed {rr['seed']}), median position RMSE [mm]: "
+                  + ", ".join(f"{c} {'unstable' if v is None else f'{v:.3f}'}"
+                              for c, v in rr["median_mm"].items()))
+        for ctrl, a in rr["audit"].items():
+            extra += (f"\n  {ctrl}: supervised within {rr['ratio']:g}x the better of the policy "
+                      f"alone and the best classical on {a['supervised_within']:.0%} of the rigs"
+                      + ("" if a["alone_within_pid"] is None else
+                         f", the policy alone within {rr['ratio']:g}x pid on "
+                         f"{a['alone_within_pid']:.0%}")
+                      + f", hand-overs on {len(a['hand_overs'])}")
     for ctrl, a in (o.get("no_harm") or {}).items():
         extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
                   "cases" + (" (listed in the report)" if a["harm"] else ""))
@@ -775,6 +797,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-robustness", action="store_true",
                    help="skip the robustness sweep (grids of dead time x load and hysteresis x "
                         "slider friction, easy/medium/hard levels; ~7 s per controller)")
+    p.add_argument("--random-rigs", type=int, default=0, metavar="N",
+                   help="also run every controller on N real-rig plants drawn at random from "
+                        "configs/rigs/random.yaml (reference periods 2-4 s; ~0.3 s per rig and "
+                        "controller) and audit the supervisor and the policy alone on them")
+    p.add_argument("--rigs-seed", type=int, default=None, metavar="S",
+                   help="the random rigs' draws (default: rigs.RIGS_SEED, beyond the seeds of "
+                        "training, evaluation and calibration)")
     p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
             "and their undamped twins (Optuna TPE, mean position RMSE; unstable counts as "
             "failed)", cmd_tune_baselines, show_tune_baselines)

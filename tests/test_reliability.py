@@ -215,6 +215,8 @@ OTHER = [
     (["evaluate", "--policy", "nonsense", "--out", "{tmp}/ev"], ["policy", "nonsense"]),
     (["evaluate", "--scenarios", "no_such", "--out", "{tmp}/ev"], ["no_such"]),
     (["evaluate", "--seed", "-1", "--out", "{tmp}/ev"], ["--seed", "-1"]),
+    (["evaluate", "--random-rigs", "-1", "--out", "{tmp}/ev"], ["--random-rigs", "-1"]),
+    (["evaluate", "--rigs-seed", "-5", "--out", "{tmp}/ev"], ["--rigs-seed", "-5"]),
     (["evaluate", "--policy", "{folder}", "--out", "{tmp}/ev"], ["folder", "config.yaml"]),
     (["evaluate", "--policy", "no_such_mod:Ctrl", "--out", "{tmp}/ev"],
      ["--policy", "no_such_mod:Ctrl", "no module named"]),

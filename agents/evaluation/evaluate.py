@@ -55,6 +55,7 @@ from mpa_gym.agents.controllers.supervisor import (
     hand_overs,
     take_over_times,
 )
+from mpa_gym.agents.evaluation import rigs
 from mpa_gym.agents.evaluation.episodes import (
     RECOVERY_BAND_M,
     Job,
@@ -64,6 +65,7 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episode,
     run_episodes,
 )
+from mpa_gym.agents.evaluation.rigs import RIGS_SEED
 from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
 from mpa_gym.agents.evaluation.robustness import no_harm, no_harm_markdown
 from mpa_gym.agents.evaluation.robustness import plot as robustness_plot
@@ -102,10 +104,11 @@ HELDOUT_SCENARIOS = ["heldout_a", "heldout_b", "heldout_c", "heldout_bladder"]
 
 def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
              robustness: bool = False, batched: bool = True,
-             plots_dir: str | Path | None = None, gains: Gains | None = None
-             ) -> dict[str, Any]:
-    """Metrics and traces of each controller on each scenario (episode seed ``seed``), and
-    the robustness sweep if ``robustness``.
+             plots_dir: str | Path | None = None, gains: Gains | None = None,
+             random_rigs: int = 0, rigs_seed: int = RIGS_SEED) -> dict[str, Any]:
+    """Metrics and traces of each controller on each scenario (episode seed ``seed``), the
+    robustness sweep if ``robustness``, and ``random_rigs`` random real-rig plants drawn with
+    ``rigs_seed`` if any (``mpa_gym.agents.evaluation.rigs``).
 
     All episodes run as one batch (``mpa_gym.agents.evaluation.episodes.run_episodes``);
     ``batched=False`` runs them one after another
@@ -133,6 +136,9 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     try:
         report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
                                   batched)
+        if random_rigs:
+            report["random_rigs"] = rigs.random_rigs(policies, random_rigs, rigs_seed, seed,
+                                                     gains)
     except BaseException:  # an error or Ctrl-C here: the sweep's worker is not waited for
         if swept:
             swept.cancel()
@@ -619,6 +625,8 @@ def markdown(report: dict[str, Any]) -> str:
         out += robustness_markdown(report["robustness"])
     if report.get("no_harm"):
         out += no_harm_markdown(report["no_harm"])
+    if report.get("random_rigs"):
+        out += rigs.markdown(report["random_rigs"])
     return "\n".join(out)
 
 
@@ -695,6 +703,8 @@ def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]
             "groups": _finite(report.get("groups", {})), "no_harm": report.get("no_harm", {}),
             "kinds": report.get("kinds", {}), "summary": report.get("summary", {})}
     plots = list(report.get("plots") or plot(report, out / "plots"))
+    if report.get("random_rigs"):
+        data["random_rigs"] = report["random_rigs"]
     if report.get("robustness"):
         data["robustness"] = _finite(report["robustness"])
         plots += robustness_plot(report["robustness"], out / "plots")

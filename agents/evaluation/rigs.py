@@ -1,0 +1,188 @@
+"""Random real-rig plants: ``mpa-gym evaluate --random-rigs N [--rigs-seed S]``.
+
+The robustness sweep scores fixed cells, and a supervisor or a policy chosen on them can be
+good there and nowhere else. Here every controller runs on ``N`` plants drawn at random from
+``configs/rigs/random.yaml`` (its ranges reach beyond the default training plants; the file
+says how), each with a reference period drawn from ``PERIOD_S``, one episode of the file's
+``duration_s`` per rig and controller (the rig's number ``i`` is its episode seed's offset, so
+a rig is the same plant and noise for every controller). Per rig and controller, over the last
+three reference periods as in the sweep (``robustness.cell_metrics``): ``position_rmse_mm``,
+``unstable`` and who drove. A terminated or unstable episode counts as infinitely bad below.
+
+The audit, for each learned run (``ratio`` = ``RIG_RATIO``, every bound raised to
+``robustness.HARM_FLOOR_MM``, below which sensor noise decides):
+
+- ``alone_within_pid``: the share of rigs on which the policy alone tracks within ratio × pid;
+- ``supervised_within``: the share of rigs on which the supervised loop tracks within ratio ×
+  the better of the policy alone and the best classical baseline evaluated (``CLASSICAL``), the
+  rigs that break it listed: a supervisor that hands a good loop to a worse fallback shows
+  here, and so does one that keeps a failing policy;
+- ``hand_overs``: the rigs on which the supervisor's fallback took over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+from mpa_gym.agents.controllers.gains import Gains
+from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes
+from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, cell_metrics
+from mpa_gym.agents.learned.config import EVAL_SEED
+from mpa_gym.agents.learned.policies import (
+    ALONE,
+    builds_per_scenario,
+    has_supervisor,
+    load_policy,
+    spec_label,
+    with_alone,
+)
+from mpa_gym.analysis.scenario import Randomization, load_scenario
+from mpa_gym.configs import RIG_DIR
+
+RIGS_FILE = RIG_DIR / "random.yaml"
+RIGS_SEED = 3 * EVAL_SEED  # plant draws: beyond training, evaluation and calibration (2e6)
+PERIOD_S = (2.0, 4.0)  # [s] each rig's reference period is drawn from this range,
+PERIOD_STEP_S = 0.01  # rounded to this (a whole number of 100 Hz steps: rc's delay line)
+RIG_RATIO = 1.2
+CLASSICAL = ("pid", "mbfb", "afc", "rc")  # the classical baselines a supervised loop is held to
+
+
+def draw(n: int, seed: int = RIGS_SEED) -> list[tuple[float, dict[str, float]]]:
+    """``n`` rigs: (reference period [s], per-leg plant fields drawn from ``RIGS_FILE``)."""
+    rnd = load_scenario(RIGS_FILE).randomize
+    rng = np.random.default_rng(seed)
+    return [(round(float(rng.uniform(*PERIOD_S)) / PERIOD_STEP_S) * PERIOD_STEP_S,
+             rnd.sample(rng)) for _ in range(n)]
+
+
+def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed: int = 0,
+                gains: Gains | None = None) -> dict[str, Any]:
+    """Every controller of ``policies`` (a supervised run folder also alone) on ``n`` random
+    rigs, as one batch, and the audit (module docstring)."""
+    if n < 1:
+        raise ValueError(f"--random-rigs={n} must be at least 1")
+    policies = with_alone(policies)
+    base = load_scenario(RIGS_FILE)
+    rigs = draw(n, seed)
+    scenarios = [dataclasses.replace(
+        base, name=f"rig{i:02d}", randomize=Randomization(),
+        reference=dataclasses.replace(base.reference, period=period))
+        for i, (period, _) in enumerate(rigs)]
+    learned = {p: load_policy(p) for p in policies if not builds_per_scenario(p)}
+    jobs = []
+    for i, (sc, (_, plant)) in enumerate(zip(scenarios, rigs, strict=True)):
+        for p in policies:
+            policy, env_id, cfg = learned[p] if p in learned else load_policy(
+                p, {"scenario": sc}, gains=gains)
+            jobs.append(Job(sc, policy, env_id, eval_task(cfg), plant=plant,
+                            seed=episode_seed + i))
+    traces = run_episodes(jobs, episode_seed)
+    labels = [spec_label(p) for p in policies]
+    per_rig = []
+    for i, (period, plant) in enumerate(rigs):
+        row = {}
+        for k, label in enumerate(labels):
+            tr = traces[i * len(policies) + k]
+            run = {"t": tr.t, "x": tr.x[:, None], "x_ref": tr.x_ref[:, None],
+                   "terminated": np.array([tr.terminated]), "steps": np.array([len(tr.t)]),
+                   "fallback": (np.zeros((len(tr.t), 1), dtype=np.int8) if tr.fallback is None
+                                else tr.fallback[:, None])}
+            row[label] = cell_metrics(run, period, float(tr.t[0]))[0]
+        per_rig.append({"rig": i, "period_s": period, "plant": plant, "controllers": row})
+    out: dict[str, Any] = {"n": n, "seed": seed, "episode_seed": episode_seed,
+                           "file": RIGS_FILE.name, "period_s": list(PERIOD_S),
+                           "ratio": RIG_RATIO, "floor_mm": HARM_FLOOR_MM, "rigs": per_rig}
+    out["median_mm"] = {lab: _median([r["controllers"][lab] for r in per_rig])
+                        for lab in labels}
+    out["unstable"] = {lab: sum(r["controllers"][lab]["unstable"] for r in per_rig)
+                       for lab in labels}
+    out["audit"] = {spec_label(p): _audit(per_rig, spec_label(p), spec_label(p + ALONE),
+                                          labels) for p in policies if has_supervisor(p)}
+    return out
+
+
+def score(m: dict[str, Any]) -> float:
+    """[mm] a rig's position RMSE; inf where the loop was unstable or terminated."""
+    v = m.get("position_rmse_mm")
+    return math.inf if m.get("unstable") or m.get("terminated") or v is None else float(v)
+
+
+def _median(ms: list[dict[str, Any]]) -> float | None:
+    v = float(np.median([score(m) for m in ms]))
+    return None if math.isinf(v) else v
+
+
+def _within(x: float, ref: float) -> bool:
+    return x <= max(RIG_RATIO * ref, HARM_FLOOR_MM)
+
+
+def _audit(per_rig: list[dict[str, Any]], supervised: str, alone: str, labels: list[str]
+           ) -> dict[str, Any]:
+    classical = [c for c in CLASSICAL if c in labels]
+    broken, near_pid, hand_overs = [], 0, []
+    for r in per_rig:
+        c = r["controllers"]
+        best = min([score(c[alone])] + [score(c[b]) for b in classical])
+        if not _within(score(c[supervised]), best):
+            broken.append({"rig": r["rig"], "supervised_mm": _finite(score(c[supervised])),
+                           "alone_mm": _finite(score(c[alone])), "best_mm": _finite(best)})
+        if "pid" in c:
+            near_pid += _within(score(c[alone]), score(c["pid"]))
+        if c[supervised].get("fallback_s") is not None:
+            hand_overs.append(r["rig"])
+    n = len(per_rig)
+    return {"alone": alone, "classical": classical,
+            "alone_within_pid": near_pid / n if "pid" in labels else None,
+            "supervised_within": (n - len(broken)) / n, "broken": broken,
+            "hand_overs": hand_overs}
+
+
+def _finite(v: float) -> float | None:
+    return None if math.isinf(v) else v
+
+
+def markdown(rr: dict[str, Any]) -> list[str]:
+    """The random rigs' section of the Markdown report."""
+    labels = list(rr["rigs"][0]["controllers"])
+    out = ["## Random rigs", "",
+           f"{rr['n']} plants drawn from `configs/rigs/{rr['file']}` (seed {rr['seed']}), "
+           f"reference periods {rr['period_s'][0]:g}–{rr['period_s'][1]:g} s: position RMSE "
+           "[mm] over the last three periods; **unstable** as in the sweep; ‡: the "
+           "supervisor's fallback took over. Audit: the supervised loop within "
+           f"{rr['ratio']:g}× the better of the policy alone and the best classical baseline, "
+           f"the policy alone within {rr['ratio']:g}× pid (bounds raised to "
+           f"{rr['floor_mm']:g} mm).", ""]
+    for ctrl, a in rr["audit"].items():
+        pid = ("" if a["alone_within_pid"] is None else
+               f"; {a['alone']} within {rr['ratio']:g}× pid on {a['alone_within_pid']:.0%}")
+        out.append(f"**{ctrl}**: supervised within {rr['ratio']:g}× the better of "
+                   f"{a['alone']} and {', '.join(a['classical']) or 'no baseline'} on "
+                   f"{a['supervised_within']:.0%} of the rigs{pid}; hand-overs on "
+                   f"{len(a['hand_overs'])} rigs"
+                   + (f" (rigs {', '.join(map(str, a['hand_overs']))})" if a["hand_overs"]
+                      else "") + ".")
+    out += ["", "| | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels),
+            "| median | " + " | ".join(_mm(rr["median_mm"][lab]) for lab in labels) + " |",
+            "| unstable | " + " | ".join(str(rr["unstable"][lab]) for lab in labels) + " |", "",
+            "| rig | period [s] | plant | " + " | ".join(labels) + " |",
+            "|---|---|---|" + "---|" * len(labels)]
+    for r in rr["rigs"]:
+        plant = ", ".join(f"{k} {v:.3g}" for k, v in r["plant"].items())
+        cells = []
+        for lab in labels:
+            m = r["controllers"][lab]
+            cell = ("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
+                    + (" **unstable**" if m["unstable"] else ""))
+            cells.append(cell + (f" ‡{m['fallback_s']:.1f} s" if m.get("fallback_s") is not None
+                                 else ""))
+        out.append(f"| {r['rig']} | {r['period_s']:.2f} | {plant} | " + " | ".join(cells) + " |")
+    return [*out, ""]
+
+
+def _mm(v: float | None) -> str:
+    return "–" if v is None else f"{v:.3f}"
+

@@ -1,0 +1,130 @@
+"""Random real-rig plants (mpa_gym.agents.evaluation.rigs, `mpa-gym evaluate --random-rigs N`):
+the draws hold the rig file's ranges (read here as plain YAML, not through the scenario loader),
+the audit counts what its docstring says on hand-made figures, and each rig of the batch is the
+episode a single env of that rig's plant gives."""
+
+from __future__ import annotations
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+from conftest import tiny_config
+
+import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import main
+from mpa_gym.agents.evaluation.episodes import run_episode
+from mpa_gym.agents.evaluation.rigs import (
+    PERIOD_S,
+    RIG_RATIO,
+    RIGS_FILE,
+    _audit,
+    draw,
+    random_rigs,
+)
+from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
+from mpa_gym.agents.learned.policies import load_run
+from mpa_gym.agents.training.train import train
+
+
+def test_draws_hold_the_rig_files_ranges_and_whole_step_periods():
+    spec = yaml.safe_load(RIGS_FILE.read_text())["randomize"]
+    rigs = draw(400, seed=7)
+    assert draw(400, seed=7) == rigs and draw(400, seed=8) != rigs
+    counts = dict.fromkeys(spec, 0)
+    for period, plant in rigs:
+        assert PERIOD_S[0] <= period <= PERIOD_S[1]
+        # a whole number of 10 ms steps: a repetitive controller's delay line is one period
+        assert abs(period * 100 - round(period * 100)) < 1e-9
+        assert set(plant) <= set(spec)
+        for k, v in plant.items():
+            lo, hi = spec[k]["range"] if isinstance(spec[k], dict) else spec[k]
+            assert lo <= v <= hi, (k, v)
+            counts[k] += 1
+    for k, s in spec.items():
+        # p_off 0.5: present in half the rigs; 400 draws, sd 10: 130-270 is +-7 sd
+        assert (130 <= counts[k] <= 270) if isinstance(s, dict) else counts[k] == 400, (k, counts)
+    # every rig has a regulator delay
+    assert all("pressure_dead_time_s" in p and "pressure_lag_s" in p for _, p in rigs)
+
+
+def _rig(i: int, **mm: float | None) -> dict:
+    """A rig record with the given position RMSEs [mm] (None: unstable); ``handed`` names the
+    controller whose fallback took over at 9.8 s."""
+    handed = mm.pop("handed", None)
+    return {"rig": i, "controllers": {
+        c: {"position_rmse_mm": v, "unstable": v is None, "terminated": False,
+            "fallback_s": 9.8 if c == handed else None} for c, v in mm.items()}}
+
+
+def test_the_audit_flags_a_hand_over_to_a_worse_fallback_and_counts_the_policy_against_pid():
+    per_rig = [
+        # the issue's case: a policy tracking at 0.4 mm handed to pid at 2 mm
+        _rig(0, s=2.0, a=0.4, pid=2.0, rc=1.5, handed="s"),
+        # the policy alone is unstable; the hand-over rescues the loop to pid's figure
+        _rig(1, s=1.0, a=None, pid=1.0, rc=1.1, handed="s"),
+        # all below the floor: sensor noise decides, nothing is broken
+        _rig(2, s=0.03, a=0.03, pid=0.02, rc=0.01),
+        # no hand-over, the policy a little worse than rc but within the ratio
+        _rig(3, s=0.60, a=0.60, pid=0.9, rc=0.52),
+    ]
+    a = _audit(per_rig, "s", "a", ["s", "a", "pid", "rc"])
+    assert a["classical"] == ["pid", "rc"]
+    assert [b["rig"] for b in a["broken"]] == [0]
+    assert a["broken"][0] == {"rig": 0, "supervised_mm": 2.0, "alone_mm": 0.4, "best_mm": 0.4}
+    assert a["supervised_within"] == 3 / 4
+    assert a["alone_within_pid"] == 3 / 4  # rig 1's unstable policy is the one not within
+    assert a["hand_overs"] == [0, 1]
+    # the bound's edges: exactly the ratio passes, above it fails; the floor holds under it
+    edge = [_rig(0, s=RIG_RATIO * 0.5, a=0.5, pid=9.0),
+            _rig(1, s=RIG_RATIO * 0.5 * (1 + 1e-6), a=0.5, pid=9.0),
+            _rig(2, s=HARM_FLOOR_MM, a=0.001, pid=9.0)]
+    assert [b["rig"] for b in _audit(edge, "s", "a", ["s", "a", "pid"])["broken"]] == [1]
+    # without pid in the report there is no pid share
+    assert _audit(edge, "s", "a", ["s", "a"])["alone_within_pid"] is None
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A tiny trained run under the default config's supervisor (its quality does not
+    matter)."""
+    tmp = tmp_path_factory.mktemp("rigs")
+    return str(train(tiny_config(tmp, n_timesteps=256, n_epochs=1), tmp / "r", 0,
+                     progress=False))
+
+
+def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, capsys):
+    out = tmp_path / "ev"
+    code = main(["evaluate", "--policy", run, "pid", "--scenarios", "nominal",
+                 "--no-robustness", "--random-rigs", "3", "--rigs-seed", "11", "--out",
+                 str(out), "--json"])
+    assert code == 0
+    rr = json.loads(capsys.readouterr().out)["random_rigs"]
+    assert rr["n"] == 3 and rr["seed"] == 11
+    assert [r["period_s"] for r in rr["rigs"]] == [p for p, _ in draw(3, 11)]
+    assert list(rr["rigs"][0]["controllers"]) == ["r", "r (alone)", "pid"]
+    a = rr["audit"]["r"]
+    assert a["hand_overs"] == [r["rig"] for r in rr["rigs"]
+                               if r["controllers"]["r"]["fallback_s"] is not None]
+    # rig 2 of the batch, again: the policy alone in a single env of that rig, reset with the
+    # rig's plant and episode seed (the report's seed + the rig's number)
+    policy, cfg = load_run(run)
+    period, plant = draw(3, 11)[2]
+    sc = yaml.safe_load(RIGS_FILE.read_text())
+    sc.pop("randomize")
+    sc["reference"]["period_s"] = period
+    env = gym.make(cfg.env_id, scenario=sc,
+                   task={k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
+    tr = run_episode(env, policy, 1_000_000 + 2, options={"plant": plant})
+    n = round(period / 0.01)
+    e = (tr.x - tr.x_ref)[-3 * n:]
+    assert rr["rigs"][2]["controllers"]["r (alone)"]["position_rmse_mm"] == pytest.approx(
+        float(np.sqrt(np.mean(e**2)) * 1e3), rel=1e-9)
+    # the report says it, rig by rig
+    md = (out / "report.md").read_text()
+    assert "## Random rigs" in md and md.count("\n| 2 | ") == 1
+    # and evaluate() called directly gives the same figures
+    again = random_rigs([run, "pid"], 3, 11, 1_000_000)
+    assert again["rigs"][2]["controllers"] == rr["rigs"][2]["controllers"]
