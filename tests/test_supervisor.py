@@ -394,6 +394,65 @@ def test_bumpless_transfer_keeps_carrying_the_load():
         assert worst[2] > 5e-3, (j, worst)
 
 
+def test_afc_take_over_continues_the_policys_periodic_command():
+    # The policy's antagonistic command over the last period is a mean and a first harmonic
+    # u = c0 + cs sin(phase) + cc cos(phase), plus a common part that afc has no place for. At
+    # exact tracking (e = 0: no adaptation this step) afc's first output after the take-over is
+    # that command continued at this step's phase, to float32; a row younger than a period
+    # (NaN in its history) starts from the mean alone.
+    env = gym.make("MPALegResidual-v0")
+    obs, _ = env.reset(seed=5)
+    for _ in range(37):  # somewhere inside a period
+        obs, *_ = env.step(np.zeros(2, dtype=np.float32))
+    obs = np.repeat(obs[None], 2, axis=0)
+    obs[:, OBS_X], obs[:, OBS_V] = obs[:, OBS_XREF], obs[:, OBS_VREF]
+    afc = make_baseline("afc", "nominal")
+    scale, n = afc.cfg.residual_scale_bar, round(T / DT)
+    now = np.arctan2(obs[0, OBS_SIN], obs[0, OBS_COS])
+    phase = now - 2 * np.pi * np.arange(n - 1, -1, -1) / n  # the oldest first
+    c0, cs, cc = 0.21, -0.13, 0.08  # [bar]
+    u = c0 + cs * np.sin(phase) + cc * np.cos(phase)
+    common = 0.05 * np.cos(3 * phase)
+    one = np.stack([(u + common) / scale, (-u + common) / scale])  # (2, N)
+    history = np.stack([one, one])
+    history[1, :, :10] = np.nan  # row 1: the episode is younger than a period
+    held = np.nanmean(history, axis=-1)
+    state = afc.take_over(obs, held, None, np.array([True, True]), history=history)
+    a, _ = afc.predict(obs, state)
+    want = c0 + cs * np.sin(now) + cc * np.cos(now)
+    np.testing.assert_allclose(a[0], [want / scale, -want / scale], atol=1e-7)
+    mean = 0.5 * (held[1, 0] - held[1, 1])
+    np.testing.assert_allclose(a[1], [mean, -mean], atol=1e-7)
+
+
+def test_afc_takes_over_a_load_bumplessly():
+    # rc carrying 1.6 kg (with and without 20 ms dead time + 30 ms lag) hands over to afc when
+    # a hair-trigger limit-cycle level (0.01 mm) trips at its arming. Started from the mean
+    # and first harmonic of rc's command over the last period, afc continues the loop: its
+    # largest |e| after the switch is within 1 mm (the recovery band) of rc's alone over the
+    # same span. From rest (afc alone adapts from zero over two periods) it drops the load:
+    # over 20 mm.
+    sc = _sc(12.0)
+    rc, afc = make_baseline("rc", sc), make_baseline("afc", sc)
+    spec = SupervisorSpec.from_config({
+        "monitors": {"limit_cycle": {"level_mm": 0.01, "window_s": 3.0, "clip_mm": None,
+                                     "arm_periods": ARM_PERIODS}},
+        "stages": [{"controller": "policy", "monitors": ["limit_cycle"]},
+                   {"controller": "afc"}]})
+    plants = [{"extra_mass_kg": 1.6},
+              {"extra_mass_kg": 1.6, "pressure_dead_time_s": 0.02, "pressure_lag_s": 0.03}]
+    alone, warm, cold = run_batches(
+        [rc, Supervised(rc, afc, DT, T, spec), Supervised(rc, Held(afc), DT, T, spec)],
+        sc, plants, 3)
+    switch = np.argmax(warm["fallback"], axis=0)
+    np.testing.assert_array_equal(np.argmax(cold["fallback"], axis=0), switch)
+    assert np.all((switch >= ARM_PERIODS * T / DT) & (switch < (ARM_PERIODS * T + 1.5) / DT))
+    for j, k in enumerate(switch):
+        worst = [np.abs(r["x_ref"] - r["x"])[k:, j].max() for r in (alone, warm, cold)]
+        assert worst[1] <= worst[0] + 1e-3, (j, worst)
+        assert worst[2] > 20e-3, (j, worst)
+
+
 def test_took_over_is_none_for_an_unsupervised_controller():
     assert took_over(make_baseline("pid", "nominal"), None) is None
     sup = Supervised(Constant(0.0), Constant(1.0), DT, T, flat())

@@ -249,7 +249,7 @@ class PIDResidual(_PlanPolicy):
         return self._antagonistic(u, st, single)
 
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
-                  rows: np.ndarray) -> np.ndarray:
+                  rows: np.ndarray, history: np.ndarray | None = None) -> np.ndarray:
         """The state from which this controller continues the residual ``held`` (n, 2) on
         ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator
         gives the antagonistic part u = (a_e − a_f) / 2 of the held command, the derivative filter
@@ -306,6 +306,36 @@ class AdaptiveFeedforward(_PlanPolicy):
         st[:, :3] += rate[:, None] * basis * np.array([1.0, 2.0, 2.0])
         u = np.einsum("ij,ij->i", st[:, :3], basis)
         return self._antagonistic(u, st, single)
+
+    def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
+                  rows: np.ndarray, history: np.ndarray | None = None) -> np.ndarray:
+        """The state from which this controller continues the policy's command on ``rows`` (a
+        bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): θ is the projection of
+        the antagonistic part u = (a_e − a_f) / 2 of the policy's actions over the last
+        reference period (``history`` (n, 2, N), oldest first, the newest at this step's
+        phase; NaN where the episode is younger than a period) on (1, sin ω₀t, cos ω₀t): its
+        mean and first harmonic, what afc converges to where that correction tracks, so a load
+        and a periodic correction the policy carried stay carried. A row without a whole
+        period starts from the mean ``held`` alone; other rows keep ``state``."""
+        obs, _ = _batch(observation)
+        n = obs.shape[0]
+        st = np.zeros((n, 4)) if state is None else np.array(state, dtype=float).reshape(n, 4)
+        scale = self.cfg.residual_scale_bar
+        theta = np.zeros((n, 3))
+        theta[:, 0] = 0.5 * (held[:, 0] - held[:, 1]) * scale
+        if history is not None:
+            u = 0.5 * (history[:, 0] - history[:, 1]) * scale
+            N = u.shape[-1]
+            whole = np.isfinite(u).all(axis=-1)
+            now = np.arctan2(obs[:, OSIN], obs[:, OCOS])
+            phase = now[:, None] - 2.0 * math.pi * np.arange(N - 1, -1, -1) / N
+            with np.errstate(invalid="ignore"):
+                harmonics = np.stack([u.mean(-1), 2.0 * (u * np.sin(phase)).mean(-1),
+                                      2.0 * (u * np.cos(phase)).mean(-1)], axis=-1)
+            theta[whole] = harmonics[whole]
+        st[rows, :3] = theta[rows]
+        st[rows, 3] = 0.0
+        return st
 
 
 class RepetitiveDesign(NamedTuple):
@@ -482,7 +512,7 @@ class RepetitiveControl(PIDResidual):
         return self._antagonistic(u, st, single)
 
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
-                  rows: np.ndarray) -> np.ndarray:
+                  rows: np.ndarray, history: np.ndarray | None = None) -> np.ndarray:
         """The state from which this controller continues the residual ``held`` (n, 2) on
         ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the PID's as
         ``PIDResidual.take_over`` (its integrator holds the antagonistic part of the command),
@@ -544,7 +574,7 @@ class StiffnessFeedback(_PlanPolicy):
         return self.params.leg.m * (a_ref + self.params.leg.g)
 
     def take_over(self, observation: np.ndarray, held: np.ndarray, state: Any,
-                  rows: np.ndarray) -> np.ndarray:
+                  rows: np.ndarray, history: np.ndarray | None = None) -> np.ndarray:
         """The state from which this controller continues the residual ``held`` (n, 2) on
         ``rows`` (a bumpless transfer, ``mpa_gym.agents.controllers.supervisor``): the integrator
         gives the force correction that the held pressures (feedforward + residual) make, on the

@@ -36,11 +36,14 @@ On entering a stage its monitors start again from zero. The fallback's loop sett
 policy's oscillation, slowly where it is near its own stability margin: its grace periods keep
 that transient from handing a loop it holds to the last resort. The fallback takes over
 bumplessly (Åström & Hägglund, "Advanced PID control", 2006, § 3.5) when it has a
-``take_over(observation, held, state, rows)`` method (both baselines): its integrator starts
-from the command the policy held, the mean of the policy's actions over the last reference
-period (its DC part, in which the periodic corrections and, to first order, the oscillation
-that tripped cancel), so the load the policy carried stays carried. A stage without it, and
-every stage after the fallback, starts from its rest state.
+``take_over(observation, held, state, rows, history)`` method (``pid``, ``mbfb``, ``rc``,
+``afc``): pid's, mbfb's and rc's integrator starts from the command the policy held, the mean
+of the policy's actions over the last reference period (its DC part, in which the periodic
+corrections and, to first order, the oscillation that tripped cancel); afc's coefficients
+start from that mean and the first harmonic of the same actions (``history``, the period in
+time order), what afc itself would converge to. Either way the load the policy carried stays
+carried. A stage without it (``ff``), and every stage after the fallback, starts from its rest
+state.
 
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
 rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage, and
@@ -500,7 +503,8 @@ class Supervised:
                 b, st = ctrl.predict(observation, st, fresh[0] if single else fresh,
                                      deterministic)
             else:  # bumpless: from the command the policy held
-                st = take_over(rows, self.held(mon), st, fresh) if fresh.any() else st
+                st = (take_over(rows, self.held(mon), st, fresh, history=self.history(mon))
+                      if fresh.any() else st)
                 b, st = ctrl.predict(observation, st, None, deterministic)
             states[s - 1] = st
             out = np.where(at[:, None], np.atleast_2d(b), out)
@@ -512,6 +516,16 @@ class Supervised:
         over the steps so far, within the first): the command the fallback takes over."""
         filled = np.minimum(mon.step, self.n_period)[:, None]
         return mon.actions.sum(axis=-1) / np.maximum(filled, 1.0)
+
+    def history(self, mon: MonitorState) -> np.ndarray:
+        """(n, 2, N) per row, the policy's actions over the last reference period in time order
+        (oldest first, the newest this step's); NaN in the slots of a row younger than a
+        period."""
+        N = self.n_period
+        order = (mon.step[:, None] + np.arange(N)[None, :]) % N  # the oldest slot first
+        out = np.take_along_axis(mon.actions, np.repeat(order[:, None, :], 2, axis=1), axis=2)
+        young = np.arange(N)[None, :] < N - np.minimum(mon.step, N)[:, None]
+        return np.where(young[:, None, :], np.nan, out)
 
     @staticmethod
     def stage(state: Any) -> np.ndarray | None:
