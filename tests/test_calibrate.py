@@ -33,9 +33,9 @@ def test_the_replay_is_the_supervisors_own_running_rms():
     # RMS the supervisor computes online (its monitor state, until the monitor trips and the
     # next stage restarts it), for every kind of monitor, on errors the replay did not make:
     # a sag, a growing oscillation off the reference period and a kick
-    n_period, steps = 100, 700
+    n_period, steps = 100, 1000
     t = np.arange(steps) * DT
-    e = np.stack([2.5e-3 * np.ones(steps),
+    e = np.stack([3e-3 * np.ones(steps),
                   3e-4 * np.exp(t / 3) * np.sin(2 * np.pi * t / 0.7),
                   np.where((t > 2) & (t < 2.1), 2e-2, 0.0)], axis=1)
     tripped = False
@@ -56,7 +56,7 @@ def test_the_replay_is_the_supervisors_own_running_rms():
         assert seen[-1].any()  # rows the policy keeps to the end
         tripped |= not seen.all()
         # online, e is X̂ − X of an observation X = 0.8 − e: one ulp of 0.8 m (1.1e-16 m) per
-        # sample against errors of 1e-4 m and more, accumulated over 700 steps: < 1e-9
+        # sample against errors of 1e-4 m and more, accumulated over 1000 steps: < 1e-9
         np.testing.assert_allclose(running_rms(m, e, n_period, DT)[seen], online[seen],
                                    rtol=1e-9, atol=1e-12)
     assert tripped  # and the comparison covered rows up to their trip

@@ -5,6 +5,7 @@ spec."""
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -509,7 +510,7 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"\(0, 30\] s"),
     ({"monitors": {"limit_cycle": {"clip_mm": 0.3}}},  # at or under its level: never trips
      r"supervisor\.monitors\.limit_cycle\.clip_mm=0\.3 mm is outside the allowed range "
-     r"\(1\.414, 100\] mm"),
+     rf"\({re.escape(f'{LimitCycle().level_mm:g}')}, 100\] mm"),  # the default level
     ({"monitors": {"limit_cycle": {"arm_periods": 1.5}}},
      r"supervisor\.monitors\.limit_cycle\.arm_periods=1\.5 must be a whole number of "
      r"reference periods in \[0, 100\]"),
@@ -562,7 +563,7 @@ def test_config_declared_supervisor_states_only_what_differs(tmp_path):
          Stage("afc")))
     assert cfg.supervisor.fallback == "pid" and cfg.supervisor.last_resort == "afc"
     text = cfg.supervisor.describe()
-    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds 40.053 mm or ")
+    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds 25.688 mm or ")
     assert "exceeds 0.6 mm after the stage's first 2 periods" in text
     assert "in pid's loop (given 1 period(s) to settle)" in text
     two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})

@@ -145,7 +145,7 @@ class Divergence(Monitor):
 
     name: ClassVar[str] = "divergence"
     what: ClassVar[str] = "the error's RMS"
-    level_mm: float = 40.053
+    level_mm: float = 25.688
     window_s: float = 0.5
     clip_mm: float | None = None
     arm_periods: int = 0
@@ -160,9 +160,9 @@ class LimitCycle(Monitor):
 
     name: ClassVar[str] = "limit_cycle"
     what: ClassVar[str] = "the RMS of the error's one-period change"
-    level_mm: float = 1.414
+    level_mm: float = 1.935
     window_s: float = 3.0
-    clip_mm: float | None = 1.768
+    clip_mm: float | None = 2.419
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -175,9 +175,9 @@ class Persistent(Monitor):
 
     name: ClassVar[str] = "persistent"
     what: ClassVar[str] = "the error's own RMS"
-    level_mm: float = 2.157
+    level_mm: float = 2.3
     window_s: float = 3.0
-    clip_mm: float | None = 3.235
+    clip_mm: float | None = 3.45
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -213,8 +213,8 @@ class Stage:
 
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
 DEFAULT_STAGES = (Stage("policy", ("divergence", "limit_cycle", "persistent")),
-                  Stage("afc", ("divergence",), GRACE_PERIODS),
-                  Stage("rc"))
+                  Stage("rc", ("divergence",), GRACE_PERIODS),
+                  Stage("pid"))
 # The flat section that run folders written before the cascade was declared hold: its keys and
 # what an omitted one meant then (it is how those runs were evaluated; never change it).
 FLAT_KEYS = {"fallback": "pid", "error_mm": 15.0, "error_window_s": 0.5, "aperiodic_mm": 3.0,
