@@ -527,9 +527,12 @@ def cmd_tune(a: argparse.Namespace) -> dict[str, Any]:
         return tune.write_best(a.storage, a.best, a.out, a.trial)
     if a.out is not None or a.trial is not None:
         raise ValueError("--out and --trial go with --best STUDY")
-    return tune.tune(a.config, a.storage, a.study_name, a.n_trials, a.max_total_trials,
-                     a.seeds_per_trial, a.n_timesteps, a.objective, a.heartbeat, a.out_dir,
-                     a.heldout)
+    try:
+        return tune.tune(a.config, a.storage, a.study_name, a.n_trials, a.max_total_trials,
+                         a.seeds_per_trial, a.n_timesteps, a.objective, a.heartbeat, a.out_dir,
+                         a.heldout)
+    except tune.TuneStopped as e:
+        raise CommandStopped(None, str(e), 128 + e.signum) from None
 
 
 def show_tune(o: dict[str, Any]) -> str:

@@ -418,6 +418,41 @@ def test_a_killed_workers_trial_is_marked_failed_and_the_study_resumes(tmp_path)
     assert len(trials[0].values) == 2
 
 
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_signalled_worker_says_so_in_one_line_and_queues_its_trial_again(tmp_path, sig):
+    """SIGTERM / Ctrl-C inside a trial's training: exit 143 / 130 with one line and no
+    traceback (Optuna logs a failed trial with its traceback), the trial FAILED and queued
+    again with its parameters, its run folder kept."""
+    import signal
+
+    cfg = tiny_tune_config(tmp_path / "c.yaml")
+    db = f"sqlite:///{tmp_path}/s.db"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpa_gym.agents.cli", "tune", "--config", str(cfg), "--storage",
+         db, "--study-name", "k", "--heldout", str(short_heldout(tmp_path / "h.yaml")),
+         "--out-dir", str(tmp_path / "runs"), "--n-trials", "1", "--n-timesteps", "1000000"],
+        env={**os.environ, "MPLBACKEND": "Agg"}, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    deadline = time.monotonic() + 120
+    while not glob.glob(str(tmp_path / "runs" / "trial0000-s0" / "tb" / "*")):  # learning
+        if time.monotonic() > deadline or proc.poll() is not None:
+            proc.kill()
+            pytest.fail(f"the trial never started training: {proc.communicate()[1]}")
+        time.sleep(0.2)
+    time.sleep(1.0)
+    proc.send_signal(getattr(signal, sig))
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + getattr(signal, sig), err
+    assert "Traceback" not in err, err
+    line = [ln for ln in err.splitlines() if ln.startswith("mpa-gym tune:")]
+    assert line == [ln for ln in err.splitlines() if not ln.startswith("[I ")], err
+    assert f"interrupted by {sig} in trial 0" in line[0] and "queued again" in line[0], err
+    trials = optuna.load_study(study_name="k", storage=db).trials
+    assert [t.state for t in trials] == [TrialState.FAIL, TrialState.WAITING]
+    assert trials[1].system_attrs.get("failed_trial") == 0
+    assert (tmp_path / "runs" / "trial0000-s0" / "model.zip").is_file()
+
+
 def test_a_trial_killed_before_its_first_heartbeat_is_failed_and_rerun(tmp_path):
     """A worker killed between Optuna's ask and its first heartbeat leaves a RUNNING trial that
     Optuna never finds stale (it has no heartbeat) and that would count toward the cap for ever.

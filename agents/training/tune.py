@@ -57,8 +57,10 @@ from __future__ import annotations
 
 import copy
 import json
+import logging
 import math
 import os
+import signal
 import socket
 import tempfile
 import time
@@ -82,7 +84,7 @@ from mpa_gym.agents.learned.config import (
     parse_config,
 )
 from mpa_gym.agents.learned.policies import ALONE, spec_label
-from mpa_gym.agents.training.train import train
+from mpa_gym.agents.training.train import TrainingStopped, train
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import check_out_dir, check_out_file, read_yaml
 
@@ -533,11 +535,72 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     # a queued trial (a failed one's rerun) counts toward the cap, and is run even at the cap
     waiting = study.get_trials(deepcopy=False, states=(TrialState.WAITING,))
     if max_total_trials is None or _count(study) < max_total_trials or waiting:
-        study.optimize(make_objective(study, data, objective, seeds, n_timesteps,
-                                      max_total_trials, out, worker, heldout),
-                       n_trials=n_trials, callbacks=callbacks, catch=(_OverCap,),
-                       gc_after_trial=True)
+        quiet = _SignalledTrials()  # Optuna logs a failed trial with its traceback
+        logging.getLogger("optuna.study._optimize").addFilter(quiet)
+        try:
+            study.optimize(make_objective(study, data, objective, seeds, n_timesteps,
+                                          max_total_trials, out, worker, heldout),
+                           n_trials=n_trials, callbacks=callbacks, catch=(_OverCap,),
+                           gc_after_trial=True)
+        except (TrainingStopped, KeyboardInterrupt) as e:
+            signum = getattr(e, "signum", signal.SIGINT)
+            if signum is None:  # the NaN guard: a genuine failure, with its traceback
+                raise
+            raise TuneStopped(_requeue_interrupted(study, st, worker), e, signum) from None
+        finally:
+            logging.getLogger("optuna.study._optimize").removeFilter(quiet)
     return summary(study, worker)
+
+
+class TuneStopped(Exception):
+    """A signal (Ctrl-C, SIGTERM) stopped this worker inside a trial; the trial is FAILED and
+    queued again (``requeued``: its number, or None when nothing ran), so the next worker runs
+    it; the trial's run folder keeps what training reached."""
+
+    def __init__(self, requeued: int | None, cause: BaseException, signum: int) -> None:
+        self.requeued, self.signum = requeued, signum
+        name = signal.Signals(signum).name
+        if requeued is None:
+            msg = f"interrupted by {name} before a trial started"
+        else:
+            where = (f" at {cause.timesteps} env steps of training ({cause.run})"
+                     if isinstance(cause, TrainingStopped) else "")
+            msg = (f"interrupted by {name} in trial {requeued}{where}; the trial is FAILED and "
+                   "queued again for the next worker")
+        super().__init__(msg)
+
+
+class _SignalledTrials(logging.Filter):
+    """Drops Optuna's failed-trial record (a traceback) when a signal stopped the trial: that
+    is a stop the user asked for, said in one line, not a fault."""
+
+    signalled = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        err = record.exc_info[1] if record.exc_info else None
+        if isinstance(err, KeyboardInterrupt) or (isinstance(err, TrainingStopped)
+                                                  and err.signum is not None):
+            self.signalled = True
+            return False
+        # and the "failed with value None" line that follows it
+        return not (self.signalled and "failed with value" in record.getMessage())
+
+
+def _requeue_interrupted(study: optuna.Study, storage: optuna.storages.BaseStorage,
+                         worker: str) -> int | None:
+    """Queue this worker's newest FAILED trial again, as a stale trial is (once), and return
+    its number."""
+    mine = [t for t in study.get_trials(deepcopy=False, states=(TrialState.FAIL,))
+            if t.user_attrs.get("worker") == worker]
+    if not mine:
+        return None
+    t = max(mine, key=lambda t: t.number)
+    callback = getattr(storage, "get_heartbeat_stale_trial_callback", lambda: None)()
+    if callback is not None:
+        callback(study, t)
+    else:  # a journal file has no heartbeat: queue the same parameters
+        study.enqueue_trial(t.params, user_attrs={"retried_from": t.number})
+    return t.number
 
 
 def fail_orphans(study: optuna.Study, storage: optuna.storages.BaseStorage,
