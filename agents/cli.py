@@ -58,7 +58,8 @@ class CommandStopped(Exception):
         self.out, self.message, self.code = out, message, code
 
 
-def _add_design_flags(p: argparse.ArgumentParser) -> None:
+def _add_design_flags(p: argparse.ArgumentParser, samples: bool = True) -> None:
+    """The flags of `design` and `analyze` (which integrates a period: no --samples)."""
     g = p.add_argument_group("reference (Eq. 21) and inputs (Eq. 22 / Table 1 / Eq. 25)")
     g.add_argument("--x0", type=float, default=REFERENCE.x0, metavar="M",
                    help="X̂0 [m] (default %(default)s)")
@@ -76,8 +77,9 @@ def _add_design_flags(p: argparse.ArgumentParser) -> None:
                    help="Eq. (25) design for the Fig. 11 envelope instead of Eq. (22)")
     x.add_argument("--stiffness-const", type=float, metavar="N_PER_M",
                    help="Eq. (25) design for a constant k̂ [N/m]")
-    g.add_argument("--samples", type=int, default=61, metavar="N",
-                   help="samples over one period (default %(default)s)")
+    if samples:
+        g.add_argument("--samples", type=int, default=61, metavar="N",
+                       help="samples over one period (default %(default)s)")
     g.add_argument("--p-max", type=float, default=INPUTS.p_max_bar, metavar="BAR",
                    help="upper pressure limit [bar] (default %(default)s)")
 
@@ -747,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_design_flags(add("design", "feedforward pressures (Eq. 16/22/25) and stiffness (Eq. 23) "
                           "over one period", cmd_design, show_design))
     _add_design_flags(add("analyze", "Theorem 1 and Floquet multipliers of a design",
-                          cmd_analyze, show_analyze))
+                          cmd_analyze, show_analyze), samples=False)
     p = add("simulate", "run the nominal feedforward against a scenario's plant", cmd_simulate,
             show_simulate)
     p.add_argument("--scenario", required=True, metavar="NAME_OR_YAML_PATH",

@@ -80,6 +80,8 @@ DESIGN = [
     (["design", "--samples", "1"], ["--samples", "1"]),
     (["design", "--samples", "1000000000"], ["--samples", "1000000000"]),
     (["analyze", "--pf-mean", "nan"], ["--pf-mean", "nan"]),
+    # found by tools/probe.py: 1e308 bar overflowed to "p_max_bar=inf"
+    (["design", "--p-max", "1e308"], ["--p-max", "1e+308", "(0, 100] bar"]),
 ]
 SIMULATE = [
     (["simulate", "--scenario", "no_such_scenario"], ["no_such_scenario"]),
@@ -361,6 +363,14 @@ def test_bad_cli_input_exits_2_naming_field_and_value(argv, want, absent, files,
         assert w in err, (w, err)
     if absent:  # refused before anything ran: no run folder made
         assert not (Path(files["tmp"]) / absent).exists()
+
+
+def test_analyze_refuses_the_samples_it_would_ignore(capsys):
+    """analyze integrates one period: it took --samples (any value, even 1e20) and ignored it."""
+    with pytest.raises(SystemExit) as e:
+        main(["analyze", "--samples", "99999999999999999999"])
+    assert e.value.code == 2
+    assert "unrecognized arguments: --samples" in capsys.readouterr().err
 
 
 # a sample, run as real processes: the exit code and a stderr with one line and no traceback

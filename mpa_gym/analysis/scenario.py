@@ -58,6 +58,7 @@ def _number(name: str, value: Any, **rng: Any) -> float:
 
 
 K_CONST_MAX = 1e5  # [N/m] largest |k̂| of a constant-stiffness design (Fig. 11: k <= ~1.3e3)
+P_MAX_LIMIT_BAR = 100.0  # [bar] largest regulator limit: 14x the default 7 bar
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,8 @@ class Inputs:
         if self.stiffness is not None and self.stiffness not in ("kmax", "kmin"):
             raise ScenarioError(f"inputs.stiffness={self.stiffness!r} must be 'kmax' or 'kmin'")
         set_(self, "p_max_bar", _number("inputs.p_max_bar", self.p_max_bar, low=0.0,
-                                        low_open=True, unit="bar"))
+                                        high=P_MAX_LIMIT_BAR, low_open=True, unit="bar",
+                                        note="a McKibben muscle is rated below 10 bar"))
         chosen = [k for k in ("mode", "stiffness", "stiffness_const_N_per_m")
                   if getattr(self, k) is not None]
         if len(chosen) > 1:
