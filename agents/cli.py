@@ -335,11 +335,11 @@ def cmd_evaluate(a: argparse.Namespace) -> dict[str, Any]:
     check_out_dir("--out", a.out)
     if not 0 <= a.seed <= 2**32 - 1:
         raise ValueError(f"--seed={a.seed} must be in [0, 4294967295]")
-    if a.random_rigs < 0:
-        raise ValueError(f"--random-rigs={a.random_rigs} must be 0 (none) or more")
-    if a.rigs_seed is None:
-        from mpa_gym.agents.evaluation.rigs import RIGS_SEED
+    from mpa_gym.agents.evaluation.rigs import MAX_RIGS, RIGS_SEED
 
+    if not 0 <= a.random_rigs <= MAX_RIGS:
+        raise ValueError(f"--random-rigs={a.random_rigs} must be in [0, {MAX_RIGS}] (0: none)")
+    if a.rigs_seed is None:
         a.rigs_seed = RIGS_SEED
     if not 0 <= a.rigs_seed <= 2**32 - 1:
         raise ValueError(f"--rigs-seed={a.rigs_seed} must be in [0, 4294967295]")
@@ -986,6 +986,17 @@ def _refuse_unknown_flags(parser: argparse.ArgumentParser, argv: list[str]) -> N
             p.error(f"unrecognized arguments: {tok}")
 
 
+def _refuse_empty(a: argparse.Namespace) -> None:
+    """An empty string given to a text option (a path, a name, a URL) is refused by name: read
+    as 'not given', ``--config ""`` would train the default config and ``--run-dir ""`` would
+    write into the working folder."""
+    for act in a.parser._actions:
+        value = getattr(a, act.dest, None)
+        if act.type is None and (value == "" or (isinstance(value, list) and "" in value)):
+            name = act.option_strings[-1] if act.option_strings else act.metavar or act.dest
+            raise ValueError(f"{name} is empty: expected {act.metavar or act.dest.upper()}")
+
+
 def _terminate(signum: int, frame: Any) -> None:
     raise Interrupted(signum)
 
@@ -1002,6 +1013,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminate)
     try:
+        _refuse_empty(a)
         out = a.run(a)
     except ModuleNotFoundError as e:
         top = (e.name or "").split(".")[0]

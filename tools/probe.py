@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import subprocess
@@ -72,7 +73,8 @@ BASES: dict[str, list[dict]] = {
     "analyze": [{}],
     "simulate": [{"--scenario": "nominal"}],
     "figures": [{"--out": "{w}/figs"}],
-    "train": [{"--config": "{tiny}", "--run-dir": "{w}/run", "--no-progress": None}],
+    "train": [{"--config": "{tiny}", "--run-dir": "{w}/run", "--no-progress": None},
+              {"--no-progress": None}],
     "evaluate": [{"--policy": ["ff"], "--scenarios": ["nominal"], "--no-robustness": None,
                   "--out": "{w}/ev"}],
     "tune-baselines": [{"--policy": ["pid"], "--n-trials": "1", "--n-plants": "1",
@@ -91,7 +93,8 @@ BASES: dict[str, list[dict]] = {
               {"--loop": "ff", "--loop-s": "1", "--repeats": "1"}],
 }
 # an option that belongs to a mode: the base it is probed on (default: the command's first)
-MODE = {("tune", "--best"): 1, ("tune", "--trial"): 1, ("tune", "--out"): 1,
+MODE = {("train", "--resume"): 1,
+        ("tune", "--best"): 1, ("tune", "--trial"): 1, ("tune", "--out"): 1,
         ("identify", "--coverage"): 1, ("identify", "--seed"): 1, ("identify", "--jobs"): 1,
         ("identify", "--coverage-dir"): 1, ("bench", "--inference"): 1,
         ("bench", "--actions"): 1, ("bench", "--no-emulator"): 1, ("bench", "--loop"): 2,
@@ -207,14 +210,7 @@ def signal_probes() -> list[Probe]:
 # ----------------------------------------------------------------------------- fixtures
 def fixtures(root: Path) -> dict[str, str]:
     """Files every probe may name, a tiny trained run, a rollout log to identify and a study."""
-    (root / "folder").mkdir()
-    (root / "a_file").write_text("x")
-    (root / "binary.yaml").write_bytes(b"\x00\x01\xff\xfe\x80")
-    (root / "broken.yaml").write_text("duration_s: [1, 2\n")
-    (root / "list.yaml").write_text("- 1\n- 2\n")
-    (root / "run_no_config").mkdir()
-    (root / "started").mkdir()
-    (root / "started" / "config.yaml").write_text("{}")
+    small_files(root)
     cfg = yaml.safe_load((ROOT / "configs" / "ppo_residual.yaml").read_text())
     env_id = next(k for k in cfg if k != "mpa_gym")
     cfg[env_id].update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=32)
@@ -231,10 +227,7 @@ def fixtures(root: Path) -> dict[str, str]:
     (root / "short.yaml").write_text(yaml.safe_dump({
         "name": "short", "duration_s": 1.5,
         "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": 0.5}}))
-    files = {"tmp": str(root), "folder": str(root / "folder"), "file": str(root / "a_file"),
-             "binary": str(root / "binary.yaml"), "broken": str(root / "broken.yaml"),
-             "list": str(root / "list.yaml"), "run_no_config": str(root / "run_no_config"),
-             "started": str(root / "started"), "tiny": str(root / "tiny.yaml"),
+    files = {**small_files(root), "tmp": str(root), "tiny": str(root / "tiny.yaml"),
              "tiny_long": str(root / "tiny_long.yaml"), "tiny_tune": str(root / "tiny_tune.yaml"),
              "short": str(root / "short.yaml"), "run": str(root / "run"),
              "excite": str(root / "excite.jsonl"), "study": str(root / "study.db")}
@@ -254,6 +247,24 @@ def fixtures(root: Path) -> dict[str, str]:
     return files
 
 
+def small_files(root: Path) -> dict[str, str]:
+    """The hostile files (an empty folder, a plain file, binary / broken / list-shaped YAML, a
+    run folder without config and a started one) in ``root``. Every probe gets its own: an
+    output probe that writes into ``{folder}`` must not turn it into a run folder for the next."""
+    (root / "folder").mkdir()
+    (root / "a_file").write_text("x")
+    (root / "binary.yaml").write_bytes(b"\x00\x01\xff\xfe\x80")
+    (root / "broken.yaml").write_text("duration_s: [1, 2\n")
+    (root / "list.yaml").write_text("- 1\n- 2\n")
+    (root / "run_no_config").mkdir()
+    (root / "started").mkdir()
+    (root / "started" / "config.yaml").write_text("{}")
+    names = {"folder": "folder", "file": "a_file", "binary": "binary.yaml",
+             "broken": "broken.yaml", "list": "list.yaml", "run_no_config": "run_no_config",
+             "started": "started"}
+    return {k: str(root / v) for k, v in names.items()}
+
+
 def _env() -> dict[str, str]:
     return {**os.environ, "MPLBACKEND": "Agg", "PYTHONWARNINGS": "ignore"}
 
@@ -261,7 +272,7 @@ def _env() -> dict[str, str]:
 # ----------------------------------------------------------------------------- running
 def run(probe: Probe, files: dict[str, str], work: Path, timeout: float) -> dict:
     w = Path(tempfile.mkdtemp(dir=work))
-    subst = {**files, "w": str(w)}
+    subst = {**files, **small_files(w), "w": str(w)}
     argv = [a.format(**subst) for a in probe.argv]
     t0 = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", *argv],
@@ -322,9 +333,11 @@ def judge(probe: Probe, code: int | None, err: str, keeps: str | None) -> str:
     value = probe.value.format(folder="folder", binary="binary.yaml", broken="broken.yaml",
                                list="list.yaml", w="", file="a_file")
     named_flag = probe.flag in msg or probe.flag.lstrip("-") in msg
+    named_file = probe.value.startswith("{") and Path(value).name in msg
     named_value = (value == "" and ("empty" in msg or "''" in msg or "expected one" in msg)) or (
         value != "" and (value in msg or Path(value).stem in msg or _same_number(value, msg)))
-    return "refused" if named_flag and named_value else "unclear"
+    # a hostile file is named by its path (the user's own words) as well as by the flag
+    return "refused" if (named_flag or named_file) and named_value else "unclear"
 
 
 def _same_number(value: str, msg: str) -> bool:
@@ -332,8 +345,8 @@ def _same_number(value: str, msg: str) -> bool:
         x = float(value)
     except ValueError:
         return False
-    return any(s in msg for s in (repr(x), str(x), f"{x:g}", str(int(x)) if x == int(x) and
-                                  abs(x) < 1e300 else "\0"))
+    whole = math.isfinite(x) and x == int(x) and abs(x) < 1e300
+    return any(s in msg for s in (repr(x), str(x), f"{x:g}", str(int(x)) if whole else "\0"))
 
 
 def main() -> int:

@@ -27,6 +27,7 @@ import yaml
 
 import mpa_gym.agents.controllers.baselines as baselines
 from mpa_gym.agents.controllers.baselines import BASELINES
+from mpa_gym.files import read_yaml
 from mpa_gym.model.params import check_keys, check_range
 
 NOT_GAINS = ("plan", "params", "row_plans")  # dataclass fields a gains file cannot set
@@ -48,13 +49,7 @@ def load_gains(source: str | Path | dict[str, Any] | None, where: str = "--gains
     if source is None:
         return {}
     if isinstance(source, str | Path):
-        path = Path(source)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except OSError as e:
-            raise ValueError(f"{where} {str(source)!r}: cannot be read ({e.strerror})") from None
-        except yaml.YAMLError as e:
-            raise ValueError(f"{where} {str(source)!r}: not YAML ({type(e).__name__})") from None
+        data = read_yaml(source, f"{where}: gains file")
         if not isinstance(data, dict) or "gains" not in data:
             raise ValueError(f"{where} {str(source)!r}: a gains file is a mapping with keys "
                              f"{list(FILE_KEYS)} (`mpa-gym tune-baselines --out` writes one)")

@@ -48,6 +48,7 @@ RIGS_SEED = 3 * EVAL_SEED  # plant draws: beyond training, evaluation and calibr
 PERIOD_S = (2.0, 4.0)  # [s] each rig's reference period is drawn from this range,
 PERIOD_STEP_S = 0.01  # rounded to this (a whole number of 100 Hz steps: rc's delay line)
 RIG_RATIO = 1.2
+MAX_RIGS = 10_000  # ~0.3 s per rig and controller: about an hour per controller at the most
 CLASSICAL = ("pid", "mbfb", "afc", "rc")  # the classical baselines a supervised loop is held to
 
 
@@ -63,8 +64,8 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
                 gains: Gains | None = None) -> dict[str, Any]:
     """Every controller of ``policies`` (a supervised run folder also alone) on ``n`` random
     rigs, as one batch, and the audit (module docstring)."""
-    if n < 1:
-        raise ValueError(f"--random-rigs={n} must be at least 1")
+    if not 1 <= n <= MAX_RIGS:
+        raise ValueError(f"--random-rigs={n} must be in [1, {MAX_RIGS}]")
     policies = with_alone(policies)
     base = load_scenario(RIGS_FILE)
     rigs = draw(n, seed)
