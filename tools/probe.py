@@ -210,7 +210,7 @@ def signal_probes() -> list[Probe]:
 # ----------------------------------------------------------------------------- fixtures
 def fixtures(root: Path) -> dict[str, str]:
     """Files every probe may name, a tiny trained run, a rollout log to identify and a study."""
-    small_files(root)
+    small = small_files(root)
     cfg = yaml.safe_load((ROOT / "configs" / "ppo_residual.yaml").read_text())
     env_id = next(k for k in cfg if k != "mpa_gym")
     cfg[env_id].update(n_envs=2, n_timesteps=64, n_steps=32, batch_size=32)
@@ -227,7 +227,7 @@ def fixtures(root: Path) -> dict[str, str]:
     (root / "short.yaml").write_text(yaml.safe_dump({
         "name": "short", "duration_s": 1.5,
         "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": 0.5}}))
-    files = {**small_files(root), "tmp": str(root), "tiny": str(root / "tiny.yaml"),
+    files = {**small, "tmp": str(root), "tiny": str(root / "tiny.yaml"),
              "tiny_long": str(root / "tiny_long.yaml"), "tiny_tune": str(root / "tiny_tune.yaml"),
              "short": str(root / "short.yaml"), "run": str(root / "run"),
              "excite": str(root / "excite.jsonl"), "study": str(root / "study.db")}
