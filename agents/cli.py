@@ -385,7 +385,8 @@ def show_evaluate(o: dict[str, Any]) -> str:
     extra = ""
     if levels:
         lrows = [[lv] + [("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
-                          + (" unstable" if m["unstable"] else "")) for m in per.values()]
+                          + (" unstable" if m["unstable"] else "")) + took(m)
+                         for m in per.values()]
                  for lv, per in levels.items()]
         extra = ("\n\nrobustness levels, position RMSE [mm] (grids in the report)\n"
                  + _table(lrows, ["level", *next(iter(levels.values()))]))

@@ -11,6 +11,7 @@ over 0.5 s passing 0.05 mm), on a plant 0.1 kg off the nominal one behind a 30 m
 from __future__ import annotations
 
 import json
+import re
 
 import gymnasium as gym
 import numpy as np
@@ -168,6 +169,31 @@ def test_groups_and_the_sweep_hold_the_supervised_system_and_the_policy_alone(ru
     assert rob["grids"]["load"]["hand_overs"] == {"w-s0": 2}
     assert "**w-s0** (its supervisor handed over on 2 of 2 cells)" in \
         robustness_markdown(rob)
+
+
+def test_the_summary_says_who_drove_the_sweep_too(runs):
+    """A hand-over on a robustness level or grid cell is listed beside the scenarios' and the
+    terminal's levels table marks the level: the main job's summary said "none, the policies
+    drove every step" above a hard level its fallback had driven."""
+    from mpa_gym.agents.cli import show_evaluate
+
+    grid = Grid("load", "extra_mass_kg", (0.5, 1.0), "pressure_lag_s", (0.03,))
+    rob = robustness([runs[0], "ff"], scenario=TRIP, grids=(grid,),
+                     levels={"heavy": {"extra_mass_kg": 1.0}}, kicks={})
+    rep = evaluate([runs[0], "ff"], [TRIP])
+    rep["robustness"] = rob
+    lv = rob["levels"]["heavy"]["w-s0"]
+    assert lv["fallback_s"] is not None and rob["levels"]["heavy"]["ff"]["fallback_s"] is None
+    lines = hand_over_lines(rep)
+    assert f"w-s0 on level heavy: pid from {lv['fallback_s']:.1f} s" in "\n".join(lines)
+    assert "w-s0 on grid load: 2 of 2 cells" in lines
+    assert not any(ln.startswith(("ff ", "w-s0 (alone)")) for ln in lines)
+    text = show_evaluate({**rep, "hand_overs": lines, "groups": {}, "no_harm": {},
+                          "report_md": "r.md", "report_json": "r.json", "plots": "p"})
+    [row] = [ln for ln in text.splitlines() if ln.split()[:1] == ["heavy"]]
+    cells = re.split(r"\s{2,}", row.strip())  # heavy | w-s0 | w-s0 (alone) | ff
+    assert cells[1].endswith(" ‡") and "‡" not in "".join(cells[2:])
+    assert "none, the policies drove every step" not in text
 
 
 def test_no_harm_audits_the_sweep_of_both(runs):

@@ -684,11 +684,20 @@ def plot(report: dict[str, Any], out_dir: Path) -> list[Path]:
 
 def hand_over_lines(report: dict[str, Any]) -> list[str]:
     """``<controller> on <scenario>: pid from 9.5 s; policy 79 % of steps`` for every row of a
-    report in which a supervisor's fallback took over (``mpa-gym evaluate``'s summary)."""
+    report in which a supervisor's fallback took over, the same for every robustness level and
+    kick, and the count per robustness grid (``mpa-gym evaluate``'s summary)."""
     stages = report.get("stages") or {}
-    return [f"{c} on {sc}: {hand_overs(m, stages.get(c))}"
-            for sc, row in report["results"].items() for c, m in row.items()
-            if m.get("fallback_s") is not None]
+    rob = report.get("robustness") or {}
+    rows = [(sc, row) for sc, row in report["results"].items()]
+    rows += [(f"{key[:-1]} {n}", per) for key in ("levels", "kicks")
+             for n, per in (rob.get(key) or {}).items()]
+    lines = [f"{c} on {where}: {hand_overs(m, stages.get(c))}"
+             for where, row in rows for c, m in row.items() if m.get("fallback_s") is not None]
+    for name, g in (rob.get("grids") or {}).items():
+        n_cells = len(g["rows"]["values"]) * len(g["cols"]["values"])
+        lines += [f"{c} on grid {name}: {n} of {n_cells} cells"
+                  for c, n in (g.get("hand_overs") or {}).items() if n]
+    return lines
 
 
 def write_report(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
