@@ -88,7 +88,7 @@ SIMULATE = [
     (["simulate", "--scenario", "{folder}"], ["folder", "is a folder"]),
     (["simulate", "--scenario", "{binary}"], ["binary.yaml", "not UTF-8"]),
     (["simulate", "--scenario", "{broken}"], ["broken.yaml", "not valid YAML", "line 2"]),
-    (["simulate", "--scenario", "{list}"], ["list", "mapping"]),
+    (["simulate", "--scenario", "{list}"], ["list.yaml", "mapping"]),
     (["simulate", "--scenario", "{tmp}/missing.yaml"], ["missing.yaml"]),
     (["simulate", "--scenario", "nominal", "--dt", "0"], ["dt", "0"]),
     (["simulate", "--scenario", "nominal", "--dt", "1"], ["dt", "1"]),

@@ -158,7 +158,7 @@ def test_missing_duration_and_bad_files(tmp_path):
     bad.write_text("duration_s: [1, 2\n")
     with pytest.raises(ScenarioError, match="is not valid YAML"):
         load_scenario(bad)
-    with pytest.raises(ScenarioError, match="must be a mapping"):
+    with pytest.raises(ScenarioError, match=r"list\.yaml' must be a mapping"):
         (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
         load_scenario(tmp_path / "list.yaml")
     with pytest.raises(ScenarioError, match=r"neither a file nor one of the named scenarios"):

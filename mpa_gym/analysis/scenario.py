@@ -511,5 +511,8 @@ def load_scenario(spec: str | os.PathLike[str] | dict[str, Any] | Scenario) -> S
             raise ScenarioError(f"scenario={str(spec)!r} is neither a file nor one of the named "
                                 f"scenarios {scenario_names()}")
     data = read_yaml(path, "scenario file", ScenarioError)
-    return scenario_from_dict(data, data.get("name", path.stem) if isinstance(data, dict)
-                              else path.stem)
+    data = {} if data is None else data  # an empty file: every field's default
+    if not isinstance(data, dict):  # the file is what the user named: say which
+        raise ScenarioError(f"scenario file {str(path)!r} must be a mapping of fields, got "
+                            f"{type(data).__name__}: {data!r}")
+    return scenario_from_dict(data, data.get("name", path.stem))
