@@ -319,6 +319,12 @@ OTHER = [
     (["tune-baselines", "--seed", "-1"], ["--seed=-1", "[0, 4294967295]"]),
     (["tune-baselines", "--n-trials", "0"], ["--n-trials=0"]),
     (["tune-baselines", "--n-plants", "-1"], ["--n-plants=-1"]),
+    # found by tools/probe.py: an infinite episode overflowed (traceback), calibrate named its
+    # Python arguments (n_plants=0) rather than its flags
+    (["tune-baselines", "--episode-s", "inf"], ["--episode-s=inf", "[3, 600]"]),
+    (["tune-baselines", "--episode-s", "nan"], ["--episode-s=nan", "[3, 600]"]),
+    (["calibrate", "{started}", "--n-plants", "0"], ["--n-plants=0", "[1, 4096]"]),
+    (["calibrate", "{started}", "--episode-s", "1e308"], ["--episode-s=1e+308", "[3, 600]"]),
 ]
 
 

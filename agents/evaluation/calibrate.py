@@ -106,9 +106,10 @@ def running_rms(monitor: Any, e: np.ndarray, n_period: int, dt: float) -> np.nda
 def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
               margin: float = MARGIN, floor_mm: float = FLOOR_MM,
               seed: int = CALIBRATION_SEED) -> Calibration:
-    """The module docstring's rule on ``n_plants`` draws of the run's training randomisation."""
-    n_plants = int(check_range("n_plants", n_plants, 1, 4096))
-    check_range("episode_s", episode_s, 3.0, 600.0, unit="s")
+    """The module docstring's rule on ``n_plants`` draws of the run's training randomisation.
+    The errors name the flags of ``mpa-gym calibrate`` (``--n-plants``, ``--episode-s``)."""
+    n_plants = int(check_range("--n-plants", n_plants, 1, 4096))
+    check_range("--episode-s", episode_s, 3.0, 600.0, unit="s")
     check_range("margin", margin, 1.0, 10.0)
     run = Path(run_dir)
     cfg = load_config(run / "config.yaml")

@@ -43,6 +43,7 @@ from mpa_gym.agents.evaluation.robustness import cell_metrics, run_batch
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG, load_config
 from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
 from mpa_gym.files import atomic_write_text
+from mpa_gym.model.params import check_range
 
 FAILED_MM = 100.0  # [mm] the score of a plant on which the loop was unstable or terminated
 # The undamped twin of a plant (module docstring): field -> "low" (the low end of its range) or
@@ -131,6 +132,7 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
                             ("--seed", seed, 0, 2**32 - 1)):  # the sampler's seed: numpy's u32
         if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
             raise ValueError(f"{flag}={v!r} must be a whole number in [{lo}, {hi}]")
+    check_range("--episode-s", episode_s, 3.0, 600.0, unit="s")  # rc learns over periods
     sc, plants = training_plants(config, n_plants, seed, episode_s)
     space = SPACES[name]
     default = make_baseline(name, sc)
