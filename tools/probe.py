@@ -66,6 +66,8 @@ OUTPUTS = {("figures", "--out"), ("train", "--run-dir"), ("evaluate", "--out"),
            ("rollout", "--log"), ("identify", "--out"), ("identify", "--plot"),
            ("identify", "--coverage-dir")}
 NEVER_OUT = {"", "{file}/x"}
+# free-form names (any text is a valid Optuna study name): only the empty one is never valid
+NAMES = {("tune", "--study-name")}
 
 # cheap valid invocations: {flag: value | [values] | None (a switch)}; a probe sets one flag
 BASES: dict[str, list[dict]] = {
@@ -182,7 +184,8 @@ def option_probes() -> list[Probe]:
             else:
                 values = PATHS
             base = BASES[cmd][MODE.get((cmd, flag), 0)]
-            never = NEVER_OUT if (cmd, flag) in OUTPUTS else NEVER
+            never = (NEVER_OUT if (cmd, flag) in OUTPUTS else {""} if (cmd, flag) in NAMES
+                     else NEVER)
             for v in values:
                 val = [v] if act.nargs in ("+", "*") else v
                 probes.append(Probe("options", [cmd, *_argv(base, flag, val)[0:]], cmd, flag,
