@@ -269,12 +269,12 @@ def show_bench(o: dict[str, Any]) -> str:
 
 
 def cmd_train(a: argparse.Namespace) -> dict[str, Any]:
-    from mpa_gym.agents.learned.config import SEED_MAX
+    from mpa_gym.agents.learned.config import MAX_TIMESTEPS, SEED_MAX
     from mpa_gym.agents.learned.runs import read_eval_history, zip_timesteps
     from mpa_gym.agents.training.train import TrainingStopped, train
 
-    if a.n_timesteps is not None and not 1 <= a.n_timesteps <= 10**10:
-        raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, 1e10]")
+    if a.n_timesteps is not None and not 1 <= a.n_timesteps <= MAX_TIMESTEPS:
+        raise ValueError(f"--n-timesteps={a.n_timesteps} must be in [1, {MAX_TIMESTEPS:.0e}]")
     if a.seed is not None and not 0 <= a.seed <= SEED_MAX:
         raise ValueError(f"--seed={a.seed} must be in [0, {SEED_MAX}]")
     if a.config is not None and a.resume is not None:

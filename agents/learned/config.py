@@ -66,6 +66,7 @@ LEGACY_WRAPPERS = {"agents.wrappers.TrackingErrorObservation": OBS_WRAPPER,
 # the default training config: `mpa-gym train`, `tune` and `tune-baselines` without --config
 DEFAULT_CONFIG = DEFAULT_TRAIN_CONFIG
 SEED_MAX = 2**31 - 1  # largest training seed (every seed a training env and torch accept)
+MAX_TIMESTEPS = 10**10  # the most env steps a run may ask for (~6 days at 20,000 steps/s)
 EVAL_SEED = 1_000_000  # first seed of evaluation episodes: no training env draws seeds this high
 ACTIVATIONS = {"nn.Tanh": "Tanh", "nn.ReLU": "ReLU", "nn.ELU": "ELU", "nn.LeakyReLU": "LeakyReLU"}
 
@@ -119,7 +120,7 @@ class TrainConfig:
         if self.env_id not in ENV_IDS:
             raise ConfigError(f"{self.source}: env_id={self.env_id!r}: allowed {list(ENV_IDS)}")
         self.n_envs = _int(self.n_envs, f"{where}.n_envs", 1, 4096)
-        self.n_timesteps = _int(self.n_timesteps, f"{where}.n_timesteps", 1, 1e10)
+        self.n_timesteps = _int(self.n_timesteps, f"{where}.n_timesteps", 1, MAX_TIMESTEPS)
         if self.policy != "MlpPolicy":
             raise ConfigError(f"{where}.policy={self.policy!r}: allowed ['MlpPolicy']")
         _check_normalize(self.normalize, f"{where}.normalize")

@@ -78,6 +78,7 @@ from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
 from mpa_gym.agents.learned.config import (
     ACTION_WRAPPER,
     DEFAULT_CONFIG,
+    MAX_TIMESTEPS,
     OBS_WRAPPER,
     ConfigError,
     _literal,
@@ -90,6 +91,7 @@ from mpa_gym.files import check_out_dir, check_out_file, read_yaml
 
 DEFAULT_STORAGE = "sqlite:///runs/optuna.db"
 DEFAULT_STUDY = "ppo_residual"
+MAX_TRIALS = 10**6  # per worker and per study: a bound a study never reaches on purpose
 # The default search space for MPALegResidual-v0 (used when a config has no mpa_gym.tune): the
 # default config's own section, so the space is written once, next to the values it varies.
 DEFAULT_SPACE: dict[str, dict[str, Any]] = read_yaml(DEFAULT_CONFIG, "default config",
@@ -636,11 +638,13 @@ def _count(study: optuna.Study) -> int:
 
 def _check_counts(n_trials: int | None, max_total: int | None, seeds: int,
                   n_timesteps: int | None, heartbeat_s: int) -> None:
-    for flag, v, lo in (("--n-trials", n_trials, 1), ("--max-total-trials", max_total, 1),
-                        ("--seeds-per-trial", seeds, 1), ("--n-timesteps", n_timesteps, 1),
-                        ("--heartbeat", heartbeat_s, 1)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
-            raise ValueError(f"{flag}={v!r} must be a whole number >= {lo}")
+    for flag, v, hi in (("--n-trials", n_trials, MAX_TRIALS),
+                        ("--max-total-trials", max_total, MAX_TRIALS),
+                        ("--seeds-per-trial", seeds, 1000),
+                        ("--n-timesteps", n_timesteps, MAX_TIMESTEPS),
+                        ("--heartbeat", heartbeat_s, 86400)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
+            raise ValueError(f"{flag}={v!r} must be a whole number in [1, {hi}]")
 
 
 def summary(study: optuna.Study, worker: str | None = None) -> dict[str, Any]:
