@@ -245,6 +245,9 @@ def cmd_bench(a: argparse.Namespace) -> dict[str, Any]:
 
         if not 100 <= a.actions <= 10_000_000:
             raise ValueError(f"--actions={a.actions} is outside the allowed range [100, 1e7]")
+        if not Path(a.inference).is_dir():
+            raise ValueError(f"--inference {a.inference!r} is not a folder: give a run folder "
+                             "(mpa-gym train --run-dir)")
         return {"inference": benchmark(a.inference, a.actions, max(100, a.actions // 10),
                                        emulator=not a.no_emulator)}
     check_range("--seconds", a.seconds, 0.05, 60.0, unit="s")
@@ -555,6 +558,13 @@ def show_tune(o: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+# emulate's fault-injection flags: (flag, mpa_gym.hardware.emulator.LinkFaults field, unit)
+FAULT_FLAGS = (("--latency", "latency_s", "s"), ("--jitter", "jitter_s", "s"),
+               ("--drop", "drop_prob", "probability"), ("--late", "late_prob", "probability"),
+               ("--corrupt", "corrupt_prob", "probability"),
+               ("--position-noise", "position_noise_m", "m"))
+
+
 def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
     from mpa_gym.hardware.emulator import Emulator, LinkFaults
     from mpa_gym.hardware.transport import PtyPair, TransportError, UDPServer
@@ -566,9 +576,14 @@ def cmd_emulate(a: argparse.Namespace) -> dict[str, Any]:
         raise ValueError(f"--port={a.port} must be in [0, 65535]")
     if a.serial:
         _only_with(a, "--serial (a pseudo-terminal)", ("--host", "--port"))
-    faults = LinkFaults(latency_s=a.latency, jitter_s=a.jitter, drop_prob=a.drop,
-                        late_prob=a.late, corrupt_prob=a.corrupt,
-                        position_noise_m=a.position_noise)
+    try:
+        faults = LinkFaults(**{field: getattr(a, flag[2:].replace("-", "_"))
+                               for flag, field, _ in FAULT_FLAGS})
+    except ValueError as e:  # LinkFaults names its fields: name the flags instead
+        msg = str(e)
+        for flag, field, _ in FAULT_FLAGS:
+            msg = msg.replace(f"faults.{field}", flag)
+        raise ValueError(msg) from None
     try:
         link = UDPServer(a.host, a.port) if a.udp else PtyPair()
     except TransportError as e:  # a bad --host / --port: the user's input
@@ -691,12 +706,17 @@ def show_rollout(o: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+IDENTIFY_MODES = {"--log": ("--out", "--scenario", "--plot", "--holdout", "--session"),
+                  "--coverage": ("--seed", "--episode-s", "--jobs", "--coverage-dir")}
+
+
 def cmd_identify(a: argparse.Namespace) -> dict[str, Any]:
     if a.coverage is not None:
         from mpa_gym.agents.rig.coverage import coverage
 
         if a.log is not None:
             raise ValueError("--coverage draws its own rigs and logs; give it without --log")
+        _only_with(a, "--coverage", IDENTIFY_MODES["--log"])
         if a.coverage_dir is not None:
             check_out_dir("--coverage-dir", a.coverage_dir)
         return coverage(a.coverage, a.seed, a.episode_s, a.jobs, a.coverage_dir)
@@ -704,6 +724,7 @@ def cmd_identify(a: argparse.Namespace) -> dict[str, Any]:
 
     if a.log is None:
         raise ValueError("--log is required (a rollout log; or --coverage N)")
+    _only_with(a, "--log (one fit)", IDENTIFY_MODES["--coverage"])
     # the outputs, before the fit: a folder, a name matplotlib would extend, an unwritable place
     plot = a.plot if a.plot is not None else str(Path(a.log).with_suffix(".identify.png"))
     for flag, path, kinds in (("--out", a.out, (".yaml", ".yml")),
@@ -884,9 +905,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true",
                    help="real-time (SCHED_FIFO) priority, as a device's firmware has, if "
                         "permitted")
-    for flag, kind in (("--latency", "s"), ("--jitter", "s"), ("--drop", "probability"),
-                       ("--late", "probability"), ("--corrupt", "probability"),
-                       ("--position-noise", "m")):
+    for flag, _, kind in FAULT_FLAGS:
         p.add_argument(flag, type=float, default=0.0, help=f"fault injection ({kind})")
     p = add("rollout", "roll a controller out on the rig (or, --dry-run, on the emulator)",
             cmd_rollout, show_rollout)

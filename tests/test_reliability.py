@@ -248,8 +248,8 @@ OTHER = [
     (["emulate", "--udp", "--duration", "-1"], ["--duration", "-1"]),
     (["emulate", "--udp", "--watchdog", "0"], ["--watchdog", "0"]),
     (["emulate", "--udp", "--port", "70000"], ["--port", "70000"]),
-    (["emulate", "--udp", "--drop", "2"], ["drop_prob", "2"]),
-    (["emulate", "--udp", "--latency", "-1"], ["latency_s", "-1"]),
+    (["emulate", "--udp", "--drop", "2"], ["--drop=2", "[0, 1]"]),
+    (["emulate", "--udp", "--latency", "-1"], ["--latency=-1", "[0, 1] s"]),
     (["emulate", "--udp", "--scenario", "no_such"], ["no_such"]),
     (["rollout", "--policy", "ff", "--dry-run", "--episodes", "0"], ["--episodes", "0"]),
     (["rollout", "--policy", "ff", "--dry-run", "--episodes", "-3"], ["--episodes", "-3"]),
@@ -314,6 +314,18 @@ OTHER = [
       "{file}"], ["--out-dir", "a_file"]),
     (["tune", "--config", "{broken}", "--storage", "sqlite:///{tmp}/t.db"],
      ["broken.yaml", "not valid YAML"]),
+    # found by tools/probe.py: a coverage flag beside --log was ignored, the fault flags were
+    # named by LinkFaults' fields, a binary --log raised the codec's error (and any file was
+    # appended to), --inference named config.yaml rather than itself
+    (["identify", "--log", "{tmp}/x.jsonl", "--episode-s", "nan"],
+     ["--episode-s=nan", "--log", "ignore"]),
+    (["identify", "--coverage", "2", "--out", "{tmp}/id.yaml"], ["--out=", "--coverage"]),
+    (["emulate", "--udp", "--position-noise", "-1"], ["--position-noise=-1", "[0, 0.01]"]),
+    (["rollout", "--policy", "ff", "--dry-run", "--log", "{binary}"],
+     ["--log", "binary.yaml", "not a rollout log"]),
+    (["rollout", "--policy", "ff", "--dry-run", "--log", "{file}"],
+     ["--log", "a_file", "not a rollout log"]),
+    (["bench", "--inference", "nonsense"], ["--inference", "'nonsense'", "run folder"]),
     # found by tools/probe.py: 1e20 trials or steps ran until killed
     (["tune", "--config", "{good_config}", "--storage", "sqlite:///{tmp}/t.db", "--out-dir",
       "{tmp}/tune", "--n-trials", "99999999999999999999"],

@@ -127,16 +127,29 @@ def open_log(path: str | Path) -> IO[str]:
     log = Path(path)
     if log.is_dir():
         raise ValueError(f"--log {str(log)!r} is a folder; give a file (e.g. {log}/rollout.jsonl)")
+    torn = False
+    if log.is_file() and log.stat().st_size > 0:
+        # appending to a file that is not a log would corrupt it (a config given by mistake)
+        with log.open("rb") as g:
+            first = g.readline(1 << 20)
+            g.seek(-1, 2)
+            torn = g.read(1) != b"\n"
+        try:
+            is_log = isinstance(json.loads(first), dict)
+        except ValueError:  # not JSON, not UTF-8
+            is_log = False
+        if not is_log:
+            raise ValueError(f"--log {str(log)!r} exists and is not a rollout log (its first "
+                             "line is not a JSON record); give a new file or a log of "
+                             "mpa-gym rollout to append to")
     try:
         log.parent.mkdir(parents=True, exist_ok=True)
-        f = log.open("a+", buffering=1)
+        f = log.open("a", buffering=1)
     except OSError as e:
         raise ValueError(f"--log {str(log)!r} cannot be opened for writing: {e.strerror}"
                          ) from None
-    if f.tell() > 0:
-        f.seek(f.tell() - 1)
-        if f.read(1) != "\n":
-            f.write("\n")
+    if torn:
+        f.write("\n")
     return f
 
 

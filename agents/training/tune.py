@@ -640,7 +640,7 @@ def _check_counts(n_trials: int | None, max_total: int | None, seeds: int,
                   n_timesteps: int | None, heartbeat_s: int) -> None:
     for flag, v, hi in (("--n-trials", n_trials, MAX_TRIALS),
                         ("--max-total-trials", max_total, MAX_TRIALS),
-                        ("--seeds-per-trial", seeds, 1000),
+                        ("--seeds-per-trial", seeds, 100),
                         ("--n-timesteps", n_timesteps, MAX_TIMESTEPS),
                         ("--heartbeat", heartbeat_s, 86400)):
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= hi):
