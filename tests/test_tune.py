@@ -453,6 +453,27 @@ def test_a_signalled_worker_says_so_in_one_line_and_queues_its_trial_again(tmp_p
     assert (tmp_path / "runs" / "trial0000-s0" / "model.zip").is_file()
 
 
+def test_tune_baselines_stopped_by_sigterm_says_so_in_one_line(tmp_path):
+    """tune-baselines spends its time inside Optuna trials: a SIGTERM there printed Optuna's
+    failed-trial traceback and "failed with value None" above the CLI's line. 10 s is well
+    into the 100,000 trials (its set-up takes ~3 s; the study never ends on its own)."""
+    import signal
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpa_gym.agents.cli", "tune-baselines", "--policy", "pid",
+         "--n-trials", "100000", "--n-plants", "1", "--episode-s", "3", "--out",
+         str(tmp_path / "g.yaml")],
+        env={**os.environ, "MPLBACKEND": "Agg"}, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True)
+    time.sleep(10.0)
+    assert proc.poll() is None, proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err
+    assert err == "mpa-gym tune-baselines: interrupted by SIGTERM\n", err
+    assert not (tmp_path / "g.yaml").exists()  # nothing half-tuned written
+
+
 def test_a_trial_killed_before_its_first_heartbeat_is_failed_and_rerun(tmp_path):
     """A worker killed between Optuna's ask and its first heartbeat leaves a RUNNING trial that
     Optuna never finds stale (it has no heartbeat) and that would count toward the cap for ever.

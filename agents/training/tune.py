@@ -57,7 +57,6 @@ from __future__ import annotations
 
 import copy
 import json
-import logging
 import math
 import os
 import signal
@@ -86,6 +85,7 @@ from mpa_gym.agents.learned.config import (
 )
 from mpa_gym.agents.learned.policies import ALONE, spec_label
 from mpa_gym.agents.training.train import TrainingStopped, train
+from mpa_gym.agents.training.trials import quiet_signalled_trials
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import check_out_dir, check_out_file, read_yaml
 
@@ -537,20 +537,17 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     # a queued trial (a failed one's rerun) counts toward the cap, and is run even at the cap
     waiting = study.get_trials(deepcopy=False, states=(TrialState.WAITING,))
     if max_total_trials is None or _count(study) < max_total_trials or waiting:
-        quiet = _SignalledTrials()  # Optuna logs a failed trial with its traceback
-        logging.getLogger("optuna.study._optimize").addFilter(quiet)
         try:
-            study.optimize(make_objective(study, data, objective, seeds, n_timesteps,
-                                          max_total_trials, out, worker, heldout),
-                           n_trials=n_trials, callbacks=callbacks, catch=(_OverCap,),
-                           gc_after_trial=True)
+            with quiet_signalled_trials():  # Optuna logs a failed trial with its traceback
+                study.optimize(make_objective(study, data, objective, seeds, n_timesteps,
+                                              max_total_trials, out, worker, heldout),
+                               n_trials=n_trials, callbacks=callbacks, catch=(_OverCap,),
+                               gc_after_trial=True)
         except (TrainingStopped, KeyboardInterrupt) as e:
             signum = getattr(e, "signum", signal.SIGINT)
             if signum is None:  # the NaN guard: a genuine failure, with its traceback
                 raise
             raise TuneStopped(_requeue_interrupted(study, st, worker), e, signum) from None
-        finally:
-            logging.getLogger("optuna.study._optimize").removeFilter(quiet)
     return summary(study, worker)
 
 
@@ -570,22 +567,6 @@ class TuneStopped(Exception):
             msg = (f"interrupted by {name} in trial {requeued}{where}; the trial is FAILED and "
                    "queued again for the next worker")
         super().__init__(msg)
-
-
-class _SignalledTrials(logging.Filter):
-    """Drops Optuna's failed-trial record (a traceback) when a signal stopped the trial: that
-    is a stop the user asked for, said in one line, not a fault."""
-
-    signalled = False
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        err = record.exc_info[1] if record.exc_info else None
-        if isinstance(err, KeyboardInterrupt) or (isinstance(err, TrainingStopped)
-                                                  and err.signum is not None):
-            self.signalled = True
-            return False
-        # and the "failed with value None" line that follows it
-        return not (self.signalled and "failed with value" in record.getMessage())
 
 
 def _requeue_interrupted(study: optuna.Study, storage: optuna.storages.BaseStorage,

@@ -126,6 +126,8 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
     on."""
     import optuna
 
+    from mpa_gym.agents.training.trials import quiet_signalled_trials
+
     if name not in SPACES:
         raise ValueError(f"policy={name!r} has no tunable gains; choose one of {sorted(SPACES)}")
     for flag, v, lo, hi in (("--n-trials", n_trials, 1, 10**6), ("--n-plants", n_plants, 1, 10**4),
@@ -151,7 +153,8 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
                                 sampler=optuna.samplers.TPESampler(seed=seed))
     study.enqueue_trial({k: min(max(getattr(default, k), lo), hi)
                          for k, (lo, hi, _) in space.items()})
-    study.optimize(objective, n_trials=n_trials)
+    with quiet_signalled_trials():  # a Ctrl-C / SIGTERM is one line (the CLI's), no traceback
+        study.optimize(objective, n_trials=n_trials)
     return {"policy": name, "gains": study.best_params,
             "mean_position_rmse_mm": study.best_value,
             "default_mean_position_rmse_mm": study.trials[0].value,
