@@ -280,7 +280,10 @@ def run(probe: Probe, files: dict[str, str], work: Path, timeout: float) -> dict
     t0 = time.monotonic()
     proc = subprocess.Popen([sys.executable, "-m", "mpa_gym.agents.cli", *argv],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=w, env=_env(), start_new_session=True)
+                            cwd=w, env=_env(), start_new_session=True,
+                            # a terminal's Ctrl-C: SIGINT handled, even when this harness runs
+                            # in the background (where a shell starts it with SIGINT ignored)
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     if probe.signal:
         try:
             proc.wait(timeout=probe.after_s)
@@ -352,6 +355,12 @@ def _same_number(value: str, msg: str) -> bool:
     return any(s in msg for s in (repr(x), str(x), f"{x:g}", str(int(x)) if whole else "\0"))
 
 
+def _key(rec: dict) -> tuple:
+    """What identifies a probe across runs (its paths differ)."""
+    return (rec["kind"], rec["command"], rec["flag"], rec["value"], rec["signal"],
+            tuple(rec["want"]))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="runs/probes", help="folder of probes.jsonl")
@@ -360,6 +369,8 @@ def main() -> int:
     ap.add_argument("--only", nargs="+", metavar="CMD", help="these subcommands only")
     ap.add_argument("--kinds", nargs="+", default=["options", "registry", "signals"],
                     choices=["options", "registry", "signals"])
+    ap.add_argument("--again", metavar="PROBES_JSONL",
+                    help="only the probes that a previous run's records did not pass")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -375,6 +386,10 @@ def main() -> int:
         probes += signal_probes()
     if a.only:
         probes = [p for p in probes if p.command in a.only]
+    if a.again:
+        failed = {_key(r) for r in map(json.loads, Path(a.again).read_text().splitlines())
+                  if r["outcome"] not in ("refused", "ok", "accepted")}
+        probes = [p for p in probes if _key(asdict(p)) in failed]
     print(f"{len(probes)} probes, {a.jobs} at a time", flush=True)
     records = []
     with open(out / "probes.jsonl", "w") as f, ThreadPoolExecutor(a.jobs) as pool:
