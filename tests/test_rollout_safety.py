@@ -172,3 +172,26 @@ def test_the_stop_reason_is_logged_when_venting_fails(tmp_path, monkeypatch):
     stop = [r for r in records if r.get("event") == "stopped"]
     assert stop == [{"event": "stopped", "fault": "interrupted by SIGINT; venting FAILED",
                      "vent_fault": "ValueError: link gone"}], stop
+
+
+def test_a_log_is_appended_to_only_if_it_is_one(tmp_path):
+    """``open_log`` appends to a rollout log, also one whose first record a kill or a full disk
+    tore (``read_log`` skips that line), and refuses any other file rather than corrupt it (a
+    config given as --log by mistake)."""
+    from mpa_gym.agents.rig.rollout import open_log
+
+    torn = tmp_path / "torn.jsonl"
+    torn.write_bytes(b'{"event": "sess')
+    with open_log(torn) as f:
+        f.write(json.dumps({"event": "session"}) + "\n")
+    assert torn.read_text().splitlines()[1] == '{"event": "session"}'
+    recs = read_log(torn)
+    assert [r["event"] for r in recs] == ["session"] and recs.skipped == 1
+    with open_log(torn) as f:  # torn first line, then a record: still a log
+        pass
+    for name, content in (("config.yaml", b"duration_s: 3\n"), ("b.bin", b"\x00\xff\x80"),
+                          ("list.jsonl", b"[1, 2]\n")):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=f"--log .*{re.escape(name)}.* not a rollout log"):
+            open_log(tmp_path / name)
+        assert (tmp_path / name).read_bytes() == content  # untouched

@@ -453,10 +453,43 @@ def test_a_signalled_worker_says_so_in_one_line_and_queues_its_trial_again(tmp_p
     assert (tmp_path / "runs" / "trial0000-s0" / "model.zip").is_file()
 
 
+def test_a_trial_stopped_by_a_signal_is_not_logged_as_a_failure(caplog):
+    """Within ``quiet_signalled_trials`` Optuna's failed-trial record (its traceback and the
+    "failed with value None" line) is dropped for a trial stopped by Ctrl-C or by an exception
+    that carries a signal number, and kept for one that carries none (the NaN guard's)."""
+    from mpa_gym.agents.training.trials import quiet_signalled_trials
+
+    class Stopped(Exception):
+        def __init__(self, signum):
+            super().__init__(f"stopped ({signum})")
+            self.signum = signum
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    optuna.logging.enable_propagation()  # to caplog, after the logger's own filters
+    try:
+        for exc, shown in ((KeyboardInterrupt(), False), (Stopped(15), False),
+                           (Stopped(None), True)):
+            study = optuna.create_study()
+
+            def objective(trial, exc=exc):
+                raise exc
+
+            caplog.clear()
+            with quiet_signalled_trials(), pytest.raises(type(exc)):
+                study.optimize(objective, n_trials=1)
+            traced = any(r.exc_info and r.exc_info[1] is exc for r in caplog.records)
+            failed = any("failed with value None" in r.getMessage() for r in caplog.records)
+            assert traced is shown and failed is shown, (exc, caplog.text)
+            assert study.trials[0].state == TrialState.FAIL
+    finally:
+        optuna.logging.disable_propagation()
+
+
 def test_tune_baselines_stopped_by_sigterm_says_so_in_one_line(tmp_path):
     """tune-baselines spends its time inside Optuna trials: a SIGTERM there printed Optuna's
     failed-trial traceback and "failed with value None" above the CLI's line. 10 s is well
-    into the 100,000 trials (its set-up takes ~3 s; the study never ends on its own)."""
+    into the 100,000 trials (its set-up takes ~3 s; the study never ends on its own); the
+    filter itself is checked in-process above."""
     import signal
 
     proc = subprocess.Popen(

@@ -98,6 +98,7 @@ BASES: dict[str, list[dict]] = {
 MODE = {("train", "--resume"): 1,
         ("tune", "--best"): 1, ("tune", "--trial"): 1, ("tune", "--out"): 1,
         ("identify", "--coverage"): 1, ("identify", "--seed"): 1, ("identify", "--jobs"): 1,
+        ("identify", "--episode-s"): 1,
         ("identify", "--coverage-dir"): 1, ("bench", "--inference"): 1,
         ("bench", "--actions"): 1, ("bench", "--no-emulator"): 1, ("bench", "--loop"): 2,
         ("bench", "--control-hz"): 2, ("bench", "--loop-s"): 2, ("bench", "--repeats"): 2,

@@ -121,6 +121,13 @@ def read_log(path: str | Path) -> LogRecords:
     return out
 
 
+def _is_record(line: bytes) -> bool:
+    try:
+        return isinstance(json.loads(line), dict)
+    except ValueError:  # not JSON, not UTF-8
+        return False
+
+
 def open_log(path: str | Path) -> IO[str]:
     """The log opened for appending (line-buffered), after a newline if the file ends in a torn
     line, so the next record starts on a line of its own. Fails before the rig is touched."""
@@ -131,13 +138,13 @@ def open_log(path: str | Path) -> IO[str]:
     if log.is_file() and log.stat().st_size > 0:
         # appending to a file that is not a log would corrupt it (a config given by mistake)
         with log.open("rb") as g:
-            first = g.readline(1 << 20)
+            head = [g.readline(1 << 20) for _ in range(3)]
             g.seek(-1, 2)
             torn = g.read(1) != b"\n"
-        try:
-            is_log = isinstance(json.loads(first), dict)
-        except ValueError:  # not JSON, not UTF-8
-            is_log = False
+        # a log: one of its first lines a JSON record (the first may be torn by a kill or a
+        # full disk, and a session appended after it), or a lone torn record
+        is_log = any(_is_record(ln) for ln in head) or (
+            not head[0].endswith(b"\n") and head[0].lstrip().startswith(b"{"))
         if not is_log:
             raise ValueError(f"--log {str(log)!r} exists and is not a rollout log (its first "
                              "line is not a JSON record); give a new file or a log of "

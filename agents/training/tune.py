@@ -56,6 +56,7 @@ as PostgreSQL, or a journal file on a shared disk).
 from __future__ import annotations
 
 import copy
+import datetime
 import json
 import math
 import os
@@ -537,6 +538,7 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
     # a queued trial (a failed one's rerun) counts toward the cap, and is run even at the cap
     waiting = study.get_trials(deepcopy=False, states=(TrialState.WAITING,))
     if max_total_trials is None or _count(study) < max_total_trials or waiting:
+        started = datetime.datetime.now()  # Optuna's own clock for a trial's start
         try:
             with quiet_signalled_trials():  # Optuna logs a failed trial with its traceback
                 study.optimize(make_objective(study, data, objective, seeds, n_timesteps,
@@ -547,7 +549,8 @@ def tune(config: str | Path | None = None, storage: str = DEFAULT_STORAGE,
             signum = getattr(e, "signum", signal.SIGINT)
             if signum is None:  # the NaN guard: a genuine failure, with its traceback
                 raise
-            raise TuneStopped(_requeue_interrupted(study, st, worker), e, signum) from None
+            raise TuneStopped(_requeue_interrupted(study, st, worker, started), e,
+                              signum) from None
     return summary(study, worker)
 
 
@@ -570,11 +573,14 @@ class TuneStopped(Exception):
 
 
 def _requeue_interrupted(study: optuna.Study, storage: optuna.storages.BaseStorage,
-                         worker: str) -> int | None:
-    """Queue this worker's newest FAILED trial again, as a stale trial is (once), and return
-    its number."""
+                         worker: str, started: datetime.datetime) -> int | None:
+    """Queue the trial the signal stopped again, as a stale trial is (once), and return its
+    number: this worker's newest FAILED trial begun since ``started`` (this optimize call)
+    that is not an over-cap one (FAILED on purpose); None when the signal came between
+    trials."""
     mine = [t for t in study.get_trials(deepcopy=False, states=(TrialState.FAIL,))
-            if t.user_attrs.get("worker") == worker]
+            if t.user_attrs.get("worker") == worker and not t.user_attrs.get("over_cap")
+            and t.datetime_start is not None and t.datetime_start >= started]
     if not mine:
         return None
     t = max(mine, key=lambda t: t.number)
