@@ -192,7 +192,7 @@ def test_a_bad_gains_file_exits_2_naming_it(tmp_path, capsys):
     for text, said in (("gains: {pid: {kp: 3}}", "unknown key(s) ['kp']"),
                        ("gains: {pid: {kp_bar_per_m: -1}}", "kp_bar_per_m=-1"),
                        ("gains: {zz: {}}", "unknown key(s) ['zz']"),
-                       ("[1, 2", "not YAML")):
+                       ("[1, 2", "not valid YAML")):
         path.write_text(text)
         code = main(["evaluate", "--policy", "pid", "--gains", str(path), "--out",
                      str(tmp_path / "ev")])

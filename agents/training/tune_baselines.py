@@ -41,6 +41,7 @@ from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.controllers.gains import gains_yaml
 from mpa_gym.agents.evaluation.robustness import cell_metrics, run_batch
 from mpa_gym.agents.learned.config import DEFAULT_CONFIG, load_config
+from mpa_gym.agents.training.trials import quiet_signalled_trials
 from mpa_gym.analysis.scenario import KICK_FIELDS, Randomization, Scenario, load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.model.params import check_range
@@ -125,8 +126,6 @@ def tune(name: str, config: str | Path = DEFAULT_CONFIG, n_trials: int = 80,
     first trial). Returns the best gains, their score (``score``) and what they were tuned
     on."""
     import optuna
-
-    from mpa_gym.agents.training.trials import quiet_signalled_trials
 
     if name not in SPACES:
         raise ValueError(f"policy={name!r} has no tunable gains; choose one of {sorted(SPACES)}")
