@@ -124,8 +124,13 @@ def test_a_supervised_run_is_reported_beside_its_policy_alone(runs):
     tr = rep["traces"]["trip"]["ff"]
     np.testing.assert_allclose(lines["ff"].get_ydata(), (tr.x - tr.x_ref) * 1e3)
     handed = [ln for lab, ln in lines.items() if "from" in lab]
-    assert [ln.get_label() for ln in handed] == [f"w-s0: pid from {sup['fallback_s']:.1f} s"]
+    # the hair-trigger monitor judges pid's loop too, after its grace of one period of the
+    # trip's reference (0.5 s: the supervisor is built for the scenario), and afc follows
+    assert sup["last_resort_s"] is not None
+    assert [ln.get_label() for ln in handed] == [f"w-s0: pid from {sup['fallback_s']:.1f} s",
+                                                 f"w-s0: afc from {sup['last_resort_s']:.1f} s"]
     assert list(handed[0].get_xdata()) == [sup["fallback_s"]] * 2
+    assert list(handed[1].get_xdata()) == [sup["last_resort_s"]] * 2
 
     # the no-harm audit checks both
     assert set(rep["no_harm"]) == {"w-s0", "w-s0 (alone)"}
@@ -224,8 +229,8 @@ def test_the_evaluate_summary_prints_the_hand_overs(runs, tmp_path, capsys):
                  "--no-robustness", "--out", str(tmp_path / "rep")]) == 0
     text = capsys.readouterr().out
     row = json.loads((tmp_path / "rep" / "report.json").read_text())["results"]["trip"]
-    fb = row["w-s0"]["fallback_s"]
-    assert f"w-s0 on trip: pid from {fb:.1f} s; policy " in text
+    fb, lr = row["w-s0"]["fallback_s"], row["w-s0"]["last_resort_s"]
+    assert f"w-s0 on trip: pid from {fb:.1f} s, afc from {lr:.1f} s; policy " in text
     assert "w-s0 (alone)" in text.splitlines()[1]  # a column of the table
     # the table's supervised cell is marked, the policy alone's is not
     table = next(ln for ln in text.splitlines() if ln.split()[:1] == ["trip"])

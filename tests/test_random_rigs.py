@@ -15,6 +15,7 @@ from conftest import tiny_config
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import main
+from mpa_gym.agents.controllers.supervisor import take_over_times
 from mpa_gym.agents.evaluation.episodes import run_episode
 from mpa_gym.agents.evaluation.rigs import (
     PERIOD_S,
@@ -25,7 +26,7 @@ from mpa_gym.agents.evaluation.rigs import (
     random_rigs,
 )
 from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
-from mpa_gym.agents.learned.policies import load_run
+from mpa_gym.agents.learned.policies import load_policy, load_run
 from mpa_gym.agents.training.train import train
 
 
@@ -122,6 +123,19 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     e = (tr.x - tr.x_ref)[-3 * n:]
     assert rr["rigs"][2]["controllers"]["r (alone)"]["position_rmse_mm"] == pytest.approx(
         float(np.sqrt(np.mean(e**2)) * 1e3), rel=1e-9)
+    # and the supervised system on that rig is the run under a supervisor built for the rig's
+    # scenario: its monitors judge over the rig's period, its fallback rc's delay line is one
+    # rig period (a supervisor built for the training scenario's 3 s judged a 2-4 s rig's loop
+    # by the error's change over 3 s, and handed it to an rc with a 3 s delay line)
+    assert abs(period - 3.0) > 0.1
+    supervised, _, _ = load_policy(run, {"scenario": sc})
+    assert supervised.n_period == n
+    tr = run_episode(env, supervised, 1_000_000 + 2, options={"plant": plant})
+    e = (tr.x - tr.x_ref)[-3 * n:]
+    row = rr["rigs"][2]["controllers"]["r"]
+    assert row["position_rmse_mm"] == pytest.approx(float(np.sqrt(np.mean(e**2)) * 1e3),
+                                                    rel=1e-9)
+    assert row["fallback_s"] == take_over_times(tr.t, tr.fallback)["fallback_s"]
     # the report says it, rig by rig
     md = (out / "report.md").read_text()
     assert "## Random rigs" in md and md.count("\n| 2 | ") == 1

@@ -85,6 +85,7 @@ from mpa_gym.agents.learned.policies import (
     builds_per_scenario,
     is_user_spec,
     load_policy,
+    loads_per_scenario,
     run_of,
     spec_label,
     with_alone,
@@ -123,15 +124,16 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     _once("--scenarios", [sc.name for sc in loaded], scenarios)
     _once("--policy", [spec_label(p) for p in policies], policies)
     policies = with_alone(policies)
-    learned = {spec: load_policy(spec) for spec in policies if not builds_per_scenario(spec)}
+    learned = {spec: load_policy(spec) for spec in policies if not loads_per_scenario(spec)}
     groups = group_runs(policies)  # several runs of one config: checked before any episode
     if groups:
         require_stats()
-    # a baseline is built for its scenario's plan; batched, one stack of them per baseline
-    own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains)[0] for sc in loaded]
-           for spec in policies if builds_per_scenario(spec)}
-    stacked = {spec: st for spec, ps in own.items() if (st := _stacked(ps)) is not None} \
-        if batched else {}
+    # a baseline (and a supervised run: its monitors and fallbacks) is built for its scenario's
+    # plan; batched, one stack of them per baseline
+    own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
+           for spec in policies if loads_per_scenario(spec)}
+    stacked = {spec: st for spec, ps in own.items()
+               if (st := _stacked([p for p, _, _ in ps])) is not None} if batched else {}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
     try:
         report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
@@ -183,7 +185,7 @@ def _once(flag: str, labels: list[str], given: list[Any]) -> None:
 
 
 def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, Any],
-                     own: dict[str, list[Policy]], stacked: dict[str, Policy],
+                     own: dict[str, list[tuple[Policy, str, Any]]], stacked: dict[str, Policy],
                      groups: list[list[str]], seed: int, batched: bool) -> dict[str, Any]:
     """``evaluate``'s report without the sweep: every controller's episode on every scenario."""
     results: dict[str, dict[str, Any]] = {}
@@ -194,8 +196,8 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
             if spec in learned:
                 policy, env_id, run_cfg = learned[spec]
             else:
-                policy, env_id, run_cfg = (stacked.get(spec) or own[spec][k],
-                                           "MPALegResidual-v0", None)
+                policy, env_id, run_cfg = ((stacked[spec], "MPALegResidual-v0", None)
+                                           if spec in stacked else own[spec][k])
             jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
             keys.append((sc, spec_label(spec)))
     if batched:
@@ -211,14 +213,16 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
         end = impulses[0].t_s + impulses[0].duration_s if impulses else None
         results.setdefault(sc.name, {})[label] = metrics(tr, sc.reference.period, end)
         traces.setdefault(sc.name, {})[label] = tr
+    # every controller as loaded (a per-scenario one as for the first scenario): what it is
+    every = {**{spec: ps[0] for spec, ps in own.items()}, **learned}
     return {"results": results, "traces": traces, "seed": seed,
             "learning": learning_speed(policies, results),
             "supervisors": {spec_label(p): cfg.supervisor.describe()
-                            for p, (pol, _, cfg) in learned.items()
+                            for p, (pol, _, cfg) in every.items()
                             if isinstance(pol, Supervised)},
             "stages": {spec_label(p): [s.controller for s in cfg.supervisor.stages]
-                       for p, (pol, _, cfg) in learned.items() if isinstance(pol, Supervised)},
-            "kinds": {spec_label(p): controller_kind(p, learned) for p in policies},
+                       for p, (pol, _, cfg) in every.items() if isinstance(pol, Supervised)},
+            "kinds": {spec_label(p): controller_kind(p, every) for p in policies},
             "groups": seed_groups(groups, results)}
 
 

@@ -34,9 +34,9 @@ from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, cell_metrics
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     ALONE,
-    builds_per_scenario,
     has_supervisor,
     load_policy,
+    loads_per_scenario,
     spec_label,
     with_alone,
 )
@@ -73,7 +73,9 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
         base, name=f"rig{i:02d}", randomize=Randomization(),
         reference=dataclasses.replace(base.reference, period=period))
         for i, (period, _) in enumerate(rigs)]
-    learned = {p: load_policy(p) for p in policies if not builds_per_scenario(p)}
+    # a supervised run is loaded for each rig: its monitors and fallbacks follow the rig's
+    # reference period (loads_per_scenario)
+    learned = {p: load_policy(p) for p in policies if not loads_per_scenario(p)}
     jobs = []
     for i, (sc, (_, plant)) in enumerate(zip(scenarios, rigs, strict=True)):
         for p in policies:

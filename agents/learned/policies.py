@@ -99,6 +99,15 @@ def builds_per_scenario(spec: str) -> bool:
     return spec in BASELINES or is_user_spec(spec)
 
 
+def loads_per_scenario(spec: str) -> bool:
+    """Whether a report loads ``spec``'s controller for each scenario it runs on: one built for
+    each scenario's plan (:func:`builds_per_scenario`) and a supervised run, whose supervisor
+    judges its loop over the scenario's reference period and hands it to fallbacks built for
+    the scenario's plan (:func:`supervise`). The run's model is read once either way
+    (:func:`load_run`); a run's policy alone is loaded once and serves every scenario."""
+    return builds_per_scenario(spec) or has_supervisor(spec)
+
+
 def user_controller(spec: str, flag: str = "--policy") -> type:
     """The class of ``module:Class``, imported; a ValueError naming ``flag`` and the value if
     the module cannot be imported, has no such class, or the class has no ``predict``."""
