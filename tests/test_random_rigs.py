@@ -5,6 +5,7 @@ episode a single env of that rig's plant gives."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import gymnasium as gym
@@ -16,7 +17,8 @@ from conftest import tiny_config
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import main
 from mpa_gym.agents.controllers.supervisor import take_over_times
-from mpa_gym.agents.evaluation.episodes import run_episode
+from mpa_gym.agents.evaluation.episodes import metrics, run_episode
+from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.evaluation.rigs import (
     PERIOD_S,
     RIG_RATIO,
@@ -25,9 +27,11 @@ from mpa_gym.agents.evaluation.rigs import (
     draw,
     random_rigs,
 )
-from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
-from mpa_gym.agents.learned.policies import load_policy, load_run
+from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, plant_jobs
+from mpa_gym.agents.learned.policies import ALONE, load_policy, load_run
+from mpa_gym.agents.training.callbacks import held_out_metrics
 from mpa_gym.agents.training.train import train
+from mpa_gym.analysis.scenario import load_scenario
 
 
 def test_draws_hold_the_rig_files_ranges_and_whole_step_periods():
@@ -142,3 +146,93 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     # and evaluate() called directly gives the same figures
     again = random_rigs([run, "pid"], 3, 11, 1_000_000)
     assert again["rigs"][2]["controllers"] == rr["rigs"][2]["controllers"]
+
+
+@pytest.fixture(scope="module")
+def told(tmp_path_factory):
+    """A tiny trained run whose policy observes the rig's regulator delays."""
+    tmp = tmp_path_factory.mktemp("told")
+
+    def observe_delays(cfg):
+        wrappers = cfg["MPALegResidual-v0"]["env_wrapper"]
+        wrappers[0]["mpa_gym.agents.learned.wrappers.TrackingErrorObservation"][
+            "delay_observation"] = True
+
+    return str(train(tiny_config(tmp, observe_delays, n_timesteps=256, n_epochs=1),
+                     tmp / "d", 0, progress=False))
+
+
+def test_a_policy_that_observes_delays_is_told_each_rigs_and_each_cells(told):
+    # the sweep's cells and the random rigs are plants of their own: a policy that observes
+    # the rig's dead time and lag is told each one's (as `identify` would measure it), never
+    # the scenario's (0, 0); a policy that does not is one object for the whole batch
+    plants = [{"pressure_dead_time_s": 0.01 * j, "pressure_lag_s": 0.03 + 0.005 * j}
+              for j in range(4)]
+    sc = load_scenario("nominal")
+    jobs = plant_jobs(told + ALONE, sc, plants, 5)
+    assert [j.policy.frontend.known_delay_s for j in jobs] == [
+        (p["pressure_dead_time_s"], p["pressure_lag_s"]) for p in plants]
+    assert [j.seed for j in jobs] == [5, 6, 7, 8] and [j.plant for j in jobs] == plants
+    assert len({id(j.policy) for j in jobs}) == 4
+    assert len({id(j.policy) for j in plant_jobs("pid", sc, plants, 5)}) == 1
+    # and a random rig's figure is that of the policy told the rig's delays, in an env of its
+    # own: rig 1 of seed 11, alone
+    rr = random_rigs([told + ALONE], 2, 11, 1_000_000)
+    period, plant = draw(2, 11)[1]
+    base = yaml.safe_load(RIGS_FILE.read_text())
+    base.pop("randomize")
+    base["reference"]["period_s"] = period
+    scenario = load_scenario(base)
+    plant_sc = dataclasses.replace(scenario, plant=dataclasses.replace(
+        scenario.plant, pressure_dead_time_s=plant["pressure_dead_time_s"],
+        pressure_lag_s=plant["pressure_lag_s"]))
+    policy, env_id, cfg = load_policy(told + ALONE, {"scenario": plant_sc})
+    assert policy.frontend.known_delay_s == (plant["pressure_dead_time_s"],
+                                             plant["pressure_lag_s"]) != (0.0, 0.0)
+    env = gym.make(env_id, scenario=base,
+                   task={k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
+    tr = run_episode(env, policy, 1_000_000 + 1, options={"plant": plant})
+    n = round(period / 0.01)
+    e = (tr.x - tr.x_ref)[-3 * n:]
+    assert rr["rigs"][1]["controllers"]["d (alone)"]["position_rmse_mm"] == pytest.approx(
+        float(np.sqrt(np.mean(e**2)) * 1e3), rel=1e-9)
+
+
+def test_held_out_figures_of_a_policy_that_observes_delays_are_told_each_scenarios(told):
+    # training's held-out evaluation (and so tune's objective) and evaluate's rows: each
+    # held-out scenario's policy is told that scenario's plant's delays, as a single env of
+    # the run loaded for the scenario gives them
+    scenarios = [load_scenario(s) for s in ("heldout_a", "heldout_c", "nominal")]
+    assert len({(s.plant.pressure_dead_time_s, s.plant.pressure_lag_s) for s in scenarios}) == 3
+    policy, cfg = load_run(told)
+    figures = held_out_metrics(cfg, scenarios, policy.model, policy.normalizer)
+    report = evaluate([told + ALONE], [s.name for s in scenarios], robustness=False)
+    for sc, (m, _) in zip(scenarios, figures, strict=True):
+        own, env_id, _ = load_policy(told + ALONE, {"scenario": sc.name})
+        assert own.frontend.known_delay_s == (sc.plant.pressure_dead_time_s,
+                                              sc.plant.pressure_lag_s)
+        env = gym.make(env_id, scenario=sc.name, task={
+            k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
+        single = metrics(run_episode(env, own, cfg.eval_seed), sc.reference.period, None)
+        assert m["position_rmse_mm"] == pytest.approx(single["position_rmse_mm"], rel=1e-9)
+        mine = metrics(run_episode(env, own, report["seed"]), sc.reference.period, None)
+        assert report["results"][sc.name]["d (alone)"]["position_rmse_mm"] == pytest.approx(
+            mine["position_rmse_mm"], rel=1e-9)
+
+
+def test_a_fallback_that_cannot_be_built_for_a_scenario_is_named(run, tmp_path, capsys):
+    # the default supervisor's first fallback, rc, has no contracting design for a 0.5 s
+    # reference: the error names the supervisor's stage and the scenario, not rc's design alone
+    short = tmp_path / "short.yaml"
+    short.write_text(yaml.safe_dump({"name": "short", "duration_s": 1.5, "reference": {
+        "x0_m": 0.8, "amp_m": 0.02, "period_s": 0.5}}))
+    with pytest.raises(ValueError, match="the supervisor's fallback 'rc' cannot be built for "
+                                         "scenario 'short': rc: no lead"):
+        load_policy(run, {"scenario": str(short)})
+    assert main(["evaluate", "--policy", run, "--scenarios", str(short), "--no-robustness",
+                 "--out", str(tmp_path / "ev")]) == 2
+    assert "the supervisor's fallback 'rc' cannot be built for scenario 'short'" in \
+        capsys.readouterr().err
+    # the policy alone runs there
+    assert main(["evaluate", "--policy", run + ALONE, "--scenarios", str(short),
+                 "--no-robustness", "--out", str(tmp_path / "ev2")]) == 0

@@ -58,8 +58,9 @@ def tiny_tune_config(path: Path, space: dict | None = None) -> Path:
 
 def short_heldout(path: Path) -> Path:
     path.write_text(yaml.safe_dump({
-        "name": "short_heldout", "duration_s": 1.5,
-        "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": 0.5},
+        "name": "short_heldout", "duration_s": 3.0,
+        # the shortest period the default supervisor's rc fallback is built for is ~0.8 s
+        "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": 1.0},
         "plant": {"mass_kg": 4.1, "pressure_lag_s": 0.03}}))
     return path
 

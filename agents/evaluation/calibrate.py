@@ -45,10 +45,10 @@ from mpa_gym.agents.controllers.supervisor import (
     Stage,
     SupervisorSpec,
 )
-from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes
-from mpa_gym.agents.evaluation.robustness import UNSTABLE_APERIODIC_MM, cell_metrics
+from mpa_gym.agents.evaluation.episodes import run_episodes
+from mpa_gym.agents.evaluation.robustness import UNSTABLE_APERIODIC_MM, cell_metrics, plant_jobs
 from mpa_gym.agents.learned.config import EVAL_SEED, load_config
-from mpa_gym.agents.learned.policies import ALONE, load_policy
+from mpa_gym.agents.learned.policies import ALONE
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.files import atomic_write_text
 from mpa_gym.model.params import check_range
@@ -118,11 +118,7 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
     rng = np.random.default_rng(seed)
     plants = [base.randomize.sample(rng) for _ in range(n_plants)]
     scored = [f"{run}{ALONE}", *CANDIDATES]
-    jobs = []
-    for spec in scored:
-        policy, env_id, run_cfg = load_policy(spec, {"scenario": sc})
-        jobs += [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
-                 for j, p in enumerate(plants)]
+    jobs = [job for spec in scored for job in plant_jobs(spec, sc, plants, seed)]
     traces = run_episodes(jobs, seed)
     period = sc.reference.period
     dt = float(traces[0].t[0])

@@ -35,6 +35,7 @@ from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     ALONE,
     has_supervisor,
+    load_for_plant,
     load_policy,
     loads_per_scenario,
     spec_label,
@@ -73,14 +74,14 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
         base, name=f"rig{i:02d}", randomize=Randomization(),
         reference=dataclasses.replace(base.reference, period=period))
         for i, (period, _) in enumerate(rigs)]
-    # a supervised run is loaded for each rig: its monitors and fallbacks follow the rig's
-    # reference period (loads_per_scenario)
+    # a supervised run is loaded for each rig (its monitors and fallbacks follow the rig's
+    # reference period), a policy that observes delays told the rig's (loads_per_scenario)
     learned = {p: load_policy(p) for p in policies if not loads_per_scenario(p)}
     jobs = []
     for i, (sc, (_, plant)) in enumerate(zip(scenarios, rigs, strict=True)):
         for p in policies:
-            policy, env_id, cfg = learned[p] if p in learned else load_policy(
-                p, {"scenario": sc}, gains=gains)
+            policy, env_id, cfg = learned[p] if p in learned else load_for_plant(
+                p, sc, plant, gains)
             jobs.append(Job(sc, policy, env_id, eval_task(cfg), plant=plant,
                             seed=episode_seed + i))
     traces = run_episodes(jobs, episode_seed)

@@ -56,9 +56,11 @@ from mpa_gym.agents.evaluation.episodes import (
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     has_supervisor,
+    load_for_plant,
     load_policy,
     run_of,
     spec_label,
+    tells_delays,
     with_alone,
 )
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
@@ -138,6 +140,22 @@ def run_batch(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], 
     return run_batches([spec], sc, plants, seed, gains)[0]
 
 
+def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]], seed: int,
+               gains: Gains | None = None) -> list[Job]:
+    """One episode of ``spec`` (a name, or a controller object) on ``sc`` per plant, plant j's
+    reset with seed ``seed + j``; one controller object for all of them (a batch), except a
+    policy that observes the rig's delays, which is told each plant's
+    (``policies.load_for_plant``)."""
+    if isinstance(spec, str) and tells_delays(spec):
+        loaded = [load_for_plant(spec, sc, p, gains) for p in plants]
+    else:
+        one = (load_policy(spec, {"scenario": sc}, gains=gains) if isinstance(spec, str)
+               else (spec, "MPALegResidual-v0", None))
+        loaded = [one] * len(plants)
+    return [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
+            for j, ((policy, env_id, run_cfg), p) in enumerate(zip(loaded, plants, strict=True))]
+
+
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],
                 seed: int, gains: Gains | None = None) -> list[dict[str, np.ndarray]]:
     """:func:`run_batch` for several controllers at once, each on every plant, as one call of
@@ -145,15 +163,7 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
     and task settings) share one vector env, a block of legs each, so a step of the sweep is one
     engine call per env rather than per controller; leg j of every block is reset with seed
     ``seed + j``, as the single batch seeds it."""
-    jobs = []
-    for spec in specs:
-        if isinstance(spec, str):
-            policy, env_id, run_cfg = load_policy(spec, {"scenario": sc}, gains=gains)
-        else:
-            policy, env_id, run_cfg = spec, "MPALegResidual-v0", None
-        task = eval_task(run_cfg)
-        jobs += [Job(sc, policy, env_id, task, plant=p, seed=seed + j)
-                 for j, p in enumerate(plants)]
+    jobs = [job for spec in specs for job in plant_jobs(spec, sc, plants, seed, gains)]
     traces = run_episodes(jobs, seed)
     n = len(plants)
     steps = max(len(tr.t) for tr in traces)

@@ -14,6 +14,7 @@ wherever the supervisor would have handed the loop to its fallback. Reports labe
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import importlib
 import math
@@ -101,11 +102,34 @@ def builds_per_scenario(spec: str) -> bool:
 
 def loads_per_scenario(spec: str) -> bool:
     """Whether a report loads ``spec``'s controller for each scenario it runs on: one built for
-    each scenario's plan (:func:`builds_per_scenario`) and a supervised run, whose supervisor
+    each scenario's plan (:func:`builds_per_scenario`), a supervised run, whose supervisor
     judges its loop over the scenario's reference period and hands it to fallbacks built for
-    the scenario's plan (:func:`supervise`). The run's model is read once either way
-    (:func:`load_run`); a run's policy alone is loaded once and serves every scenario."""
-    return builds_per_scenario(spec) or has_supervisor(spec)
+    the scenario's plan (:func:`supervise`), and a policy told the rig's delays
+    (:func:`tells_delays`: the scenario's plant's). The run's model is read once either way
+    (:func:`load_run`); any other run's policy is loaded once and serves every scenario."""
+    return builds_per_scenario(spec) or has_supervisor(spec) or tells_delays(spec)
+
+
+def tells_delays(spec: str) -> bool:
+    """Whether ``spec`` is a run folder (alone or supervised) whose policy observes the rig's
+    regulator dead time and lag (``FeatureSpec.delay_observation``)."""
+    run, _ = run_of(spec)
+    if run is None or not run_files(run).config.is_file():
+        return False
+    return bool((read_run_config(run).observation_wrapper or {}).get("delay_observation"))
+
+
+def load_for_plant(spec: str, scenario: Any, plant: dict[str, Any] | None,
+                   gains: Gains | None = None) -> tuple[Policy, str, Any]:
+    """:func:`load_policy` for ``scenario`` run with ``plant``'s fields (a sweep cell, a random
+    rig): a policy that observes the rig's delays (:func:`tells_delays`) is told this plant's
+    dead time and lag (as ``mpa-gym identify`` would measure them on that rig), not the
+    scenario's; every other controller is loaded for the scenario."""
+    if plant and tells_delays(spec):
+        base = load_scenario(scenario)
+        told = {k: plant[k] for k in ("pressure_dead_time_s", "pressure_lag_s") if k in plant}
+        scenario = dataclasses.replace(base, plant=dataclasses.replace(base.plant, **told))
+    return load_policy(spec, {"scenario": scenario}, gains=gains)
 
 
 def user_controller(spec: str, flag: str = "--policy") -> type:
@@ -233,6 +257,15 @@ class LearnedPolicy(Episodic):
         return (action[0] if single else action), st
 
 
+def tell_delays(policy: Any, scenario: Any) -> Any:
+    """``policy`` (loaded, alone) told the regulator dead time and lag of ``scenario``'s plant
+    if it observes them (``FeatureSpec.delay_observation``); returned."""
+    if getattr(policy, "features", None) is not None and policy.features.delay_observation:
+        plant = load_scenario(scenario).plant
+        policy.frontend.known_delay_s = (plant.pressure_dead_time_s, plant.pressure_lag_s)
+    return policy
+
+
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
     """(policy, config) of a run folder: the learned policy alone, never its supervisor; a
@@ -253,6 +286,7 @@ def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
     if not deployed and stamp[1] is not None:
         shared, cfg = _load_learned(str(run.resolve()), which, stamp)
         policy = copy.copy(shared)
+        policy.frontend = copy.copy(shared.frontend)  # its rig's delays are this policy's
         policy.reset()
         return policy, cfg
     return _load_run(run, which, deployed)
@@ -404,10 +438,19 @@ def supervise(policy: Policy, cfg: TrainConfig, env_kwargs: dict[str, Any] | Non
     # a run trained on several designs (a list) has none of its own to give the fallback
     stiffness = given.get("stiffness", None if isinstance(own.get("stiffness"), list)
                           else own.get("stiffness"))
-    fallback, last = (None if name is None else
-                      make_baseline(name, scenario, stiffness, task,
-                                    gains=cfg.supervisor.gains.get(name))
-                      for name in (cfg.supervisor.fallback, cfg.supervisor.last_resort))
+    def build(name: str | None) -> Policy | None:
+        if name is None:
+            return None
+        try:
+            return make_baseline(name, scenario, stiffness, task,
+                                 gains=cfg.supervisor.gains.get(name))
+        except ValueError as e:  # e.g. rc's delay line for a reference it cannot hold
+            sc = load_scenario(scenario).name
+            raise ValueError(f"the supervisor's fallback {name!r} cannot be built for scenario "
+                             f"{sc!r}: {e}. Evaluate the policy alone (RUN_DIR{ALONE}) there, "
+                             "or give the run's supervisor other stages") from None
+
+    fallback, last = build(cfg.supervisor.fallback), build(cfg.supervisor.last_resort)
     return SupervisedPolicy(policy, fallback, TaskConfig.from_kwargs(task).dt_s,
                             load_scenario(scenario).reference.period, cfg.supervisor, last)
 
@@ -511,9 +554,7 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
         if dt is not None and run_files(run).config.is_file():
             check_control_period(read_run_config(run), dt, run)
         policy, cfg = load_run(run, which, deployed)
-        if getattr(policy, "features", None) is not None and policy.features.delay_observation:
-            plant = load_scenario((env_kwargs or {}).get("scenario", "nominal")).plant
-            policy.frontend.known_delay_s = (plant.pressure_dead_time_s, plant.pressure_lag_s)
+        tell_delays(policy, (env_kwargs or {}).get("scenario", "nominal"))
         if cfg.supervisor is not None and supervised and as_given:
             policy = supervise(policy, cfg, env_kwargs)
         return policy, cfg.env_id, cfg

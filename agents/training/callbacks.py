@@ -24,7 +24,7 @@ from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.agents.learned.config import (
     TrainConfig,
 )
-from mpa_gym.agents.learned.policies import LearnedPolicy, supervise
+from mpa_gym.agents.learned.policies import LearnedPolicy, supervise, tell_delays
 from mpa_gym.agents.learned.runs import (
     read_eval_history,
     save_state,
@@ -74,11 +74,15 @@ def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normali
     took over (``supervised_fallback_s``, None: it did not): the hand-over rate is a training
     metric (``eval/hand_over_rate``)."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
+    told = policy.features is not None and policy.features.delay_observation
+    # one policy for all the scenarios (a batch), or one each told its plant's delays
+    own = [tell_delays(LearnedPolicy.from_config(model, normalizer, cfg), sc) if told
+           else policy for sc in scenarios]
     task = eval_task(cfg)
-    jobs = [Job(sc, policy, cfg.env_id, task) for sc in scenarios]
+    jobs = [Job(sc, p, cfg.env_id, task) for sc, p in zip(scenarios, own, strict=True)]
     if cfg.supervisor is not None:
-        jobs += [Job(sc, supervise(policy, cfg, {"scenario": sc}), cfg.env_id, task)
-                 for sc in scenarios]
+        jobs += [Job(sc, supervise(p, cfg, {"scenario": sc}), cfg.env_id, task)
+                 for sc, p in zip(scenarios, own, strict=True)]
     traces = run_episodes(jobs, cfg.eval_seed)
     out = [(metrics(tr, sc.reference.period, None), len(tr.t))
            for sc, tr in zip(scenarios, traces, strict=False)]
