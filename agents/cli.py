@@ -685,6 +685,11 @@ def cmd_rollout(a: argparse.Namespace) -> dict[str, Any]:
 
 def show_rollout(o: dict[str, Any]) -> str:
     lines = [f"log: {o['log']}"]
+    if o.get("told_delays_s") is not None:  # a policy that observes the rig's delays
+        dead, lag = o["told_delays_s"]
+        lines.append(f"the policy was told the rig's dead time {dead * 1e3:g} ms and lag "
+                     f"{lag * 1e3:g} ms (scenario {o['scenario']!r}'s plant; roll out with the "
+                     "scenario `mpa-gym identify --out` wrote for this rig to tell it the rig's)")
     for i, m in enumerate(o["episodes"]):
         lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "
                      f"{m['position_max_mm']:.3f} mm, stiffness RMSE "

@@ -219,10 +219,10 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
         obs, *_ = env.step(direct[0])
         np.testing.assert_array_equal(via, env.env.state["prev"][0][0])  # what the env was given
     # the model saw the tracking-error features alone (the env's X, X̂, pressures… left out):
-    # errors, integrals, the remodulated pairs and the actions in flight
+    # errors, integrals, the remodulated pairs, the actions in flight and the rig's delays
     f = policy.features
     assert f.errors_only and obs.shape == (2 + f.n_integrals + 2 * f.harmonics * f.remodulate
-                                           + 2 * f.n_actions,)
+                                           + 2 * f.n_actions + 2 * f.delay_observation,)
 
 
 class _LastObservation(gym.Wrapper):

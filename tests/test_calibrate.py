@@ -12,6 +12,7 @@ import yaml
 
 from mpa_gym.agents.controllers.supervisor import (
     DEFAULT_MONITORS,
+    Persistent,
     Stage,
     Supervised,
     SupervisorSpec,
@@ -35,7 +36,7 @@ def test_the_replay_is_the_supervisors_own_running_rms():
     # a sag, a growing oscillation off the reference period and a kick
     n_period, steps = 100, 1000
     t = np.arange(steps) * DT
-    e = np.stack([3e-3 * np.ones(steps),
+    e = np.stack([1.3e-3 * Persistent().level_mm * np.ones(steps),  # trips the default
                   3e-4 * np.exp(t / 3) * np.sin(2 * np.pi * t / 0.7),
                   np.where((t > 2) & (t < 2.1), 2e-2, 0.0)], axis=1)
     tripped = False

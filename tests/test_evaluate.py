@@ -31,7 +31,7 @@ from mpa_gym.agents.evaluation.evaluate import (
 )
 from mpa_gym.agents.evaluation.robustness import Grid, cell_metrics, no_harm, robustness
 from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
-from mpa_gym.agents.learned.policies import ALONE, load_policy, load_run
+from mpa_gym.agents.learned.policies import ALONE, load_policy
 from mpa_gym.agents.training.train import train
 
 DT, PERIOD = 0.01, 0.5
@@ -84,8 +84,10 @@ def test_a_supervised_run_is_reported_beside_its_policy_alone(runs):
         assert m["policy_share"] == 1.0 and m["fallback_s"] is None
     assert alone["position_rmse_mm"] != pytest.approx(sup["position_rmse_mm"], rel=1e-3)
     # the (alone) row is the policy by itself: the model and normaliser of the run, in a single
-    # env of its own (not the report's batch), with no supervisor anywhere
-    policy, cfg = load_run(run)
+    # env of its own (not the report's batch), with no supervisor anywhere, told the
+    # scenario's delays (delay_observation)
+    policy, _, cfg = load_policy(run + ALONE, {"scenario": TRIP})
+    assert not isinstance(policy, Supervised)
     env = gym.make(cfg.env_id, scenario=TRIP, task={k: v for k, v in
                                                     cfg.env_kwargs["task"].items()
                                                     if k != "episode_s"})

@@ -203,7 +203,7 @@ def test_model_zip_alone_takes_features_and_the_run_folder_says_so(run):
     # what SB3 does with the bare model file (the reason for README.txt): predict checks the
     # shape only, so any array of the features' width is taken without a word (the env's own
     # observation too, where the widths coincide: 9 and 9 with one previous action) and the
-    # default's raw observation (9 wide; its features 31) is refused for its shape alone;
+    # default's raw observation (9 wide; its features 33) is refused for its shape alone;
     # load with the env checks the spaces and refuses
     from stable_baselines3 import PPO
 
@@ -233,7 +233,7 @@ def test_the_loaded_policy_reproduces_the_evaluation(run):
     sc = load_scenario("load_1kg")
     report = evaluate([str(run)], [sc.name])["results"][sc.name]
     for supervised, label in ((True, run.name), (False, f"{run.name} (alone)")):
-        policy, env_id, cfg = load_policy(run, supervised=supervised)
+        policy, env_id, cfg = load_policy(run, {"scenario": sc.name}, supervised=supervised)
         env = gym.make(env_id, scenario=sc.name, task=eval_task(cfg))
         obs, info = env.reset(seed=EVAL_SEED)
         policy.reset()

@@ -28,7 +28,7 @@ from mpa_gym.agents.evaluation.rigs import (
     random_rigs,
 )
 from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, plant_jobs
-from mpa_gym.agents.learned.policies import ALONE, load_policy, load_run
+from mpa_gym.agents.learned.policies import ALONE, load_for_plant, load_policy, load_run
 from mpa_gym.agents.training.callbacks import held_out_metrics
 from mpa_gym.agents.training.train import train
 from mpa_gym.analysis.scenario import load_scenario
@@ -114,12 +114,12 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     assert a["hand_overs"] == [r["rig"] for r in rr["rigs"]
                                if r["controllers"]["r"]["fallback_s"] is not None]
     # rig 2 of the batch, again: the policy alone in a single env of that rig, reset with the
-    # rig's plant and episode seed (the report's seed + the rig's number)
-    policy, cfg = load_run(run)
+    # rig's plant and episode seed (the report's seed + the rig's number), told the rig's delays
     period, plant = draw(3, 11)[2]
     sc = yaml.safe_load(RIGS_FILE.read_text())
     sc.pop("randomize")
     sc["reference"]["period_s"] = period
+    policy, _, cfg = load_for_plant(run + ALONE, sc, plant)
     env = gym.make(cfg.env_id, scenario=sc,
                    task={k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
     tr = run_episode(env, policy, 1_000_000 + 2, options={"plant": plant})
@@ -132,7 +132,7 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     # rig period (a supervisor built for the training scenario's 3 s judged a 2-4 s rig's loop
     # by the error's change over 3 s, and handed it to an rc with a 3 s delay line)
     assert abs(period - 3.0) > 0.1
-    supervised, _, _ = load_policy(run, {"scenario": sc})
+    supervised, _, _ = load_for_plant(run, sc, plant)
     assert supervised.n_period == n
     tr = run_episode(env, supervised, 1_000_000 + 2, options={"plant": plant})
     e = (tr.x - tr.x_ref)[-3 * n:]
@@ -174,6 +174,9 @@ def test_a_policy_that_observes_delays_is_told_each_rigs_and_each_cells(told):
         (p["pressure_dead_time_s"], p["pressure_lag_s"]) for p in plants]
     assert [j.seed for j in jobs] == [5, 6, 7, 8] and [j.plant for j in jobs] == plants
     assert len({id(j.policy) for j in jobs}) == 4
+    # plants of equal delays share one (a sweep's row is one batched call)
+    twice = plant_jobs(told + ALONE, sc, [*plants, {**plants[1], "extra_mass_kg": 1.0}], 5)
+    assert twice[4].policy is twice[1].policy and len({id(j.policy) for j in twice}) == 4
     assert len({id(j.policy) for j in plant_jobs("pid", sc, plants, 5)}) == 1
     # and a random rig's figure is that of the policy told the rig's delays, in an env of its
     # own: rig 1 of seed 11, alone
@@ -236,3 +239,25 @@ def test_a_fallback_that_cannot_be_built_for_a_scenario_is_named(run, tmp_path, 
     # the policy alone runs there
     assert main(["evaluate", "--policy", run + ALONE, "--scenarios", str(short),
                  "--no-robustness", "--out", str(tmp_path / "ev2")]) == 0
+
+
+def test_a_rollout_tells_the_policy_the_scenarios_delays_and_says_so(told, tmp_path, capsys):
+    # the rig's scenario (as `identify --out` writes it) tells the deployed policy its plant's
+    # dead time and lag; the summary and the log's session record say what it was told
+    rig = tmp_path / "my_rig.yaml"
+    rig.write_text(yaml.safe_dump({"name": "my_rig", "duration_s": 3.0,
+                                   "reference": {"x0_m": 0.8, "amp_m": 0.02, "period_s": 3.0},
+                                   "plant": {"pressure_dead_time_s": 0.015,
+                                             "pressure_lag_s": 0.025}}))
+    log = tmp_path / "r.jsonl"
+    assert main(["rollout", "--policy", told + ALONE, "--dry-run", "--scenario", str(rig),
+                 "--episode-s", "0.5", "--log", str(log)]) == 0
+    out = capsys.readouterr().out
+    assert "the policy was told the rig's dead time 15 ms and lag 25 ms (scenario 'my_rig'" in out
+    session = json.loads(log.read_text().splitlines()[0])
+    assert session["event"] == "session" and session["told_delays_s"] == [0.015, 0.025]
+    # a controller that observes no delays is told none
+    assert main(["rollout", "--policy", "pid", "--dry-run", "--scenario", str(rig),
+                 "--episode-s", "0.5", "--log", str(tmp_path / "p.jsonl")]) == 0
+    assert "was told" not in capsys.readouterr().out
+    assert json.loads((tmp_path / "p.jsonl").read_text().splitlines()[0])["told_delays_s"] is None

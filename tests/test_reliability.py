@@ -595,7 +595,7 @@ def run_folders(tmp_path_factory) -> dict[str, str]:
     (["{run}", "{run}"], ["--policy", "r-s0", "once"]),
     # the policies alone of two runs: grouped by their configs before anything read them
     (["{broken-s0}:alone", "{broken-s1}:alone"], ["broken-s0", "config.yaml", "not valid YAML"]),
-    (["{mismatch}"], ["mismatch", "39-wide", "(31,)", "does not match its model"]),
+    (["{mismatch}"], ["mismatch", "41-wide", "(33,)", "does not match its model"]),
 ])
 def test_evaluate_refuses_a_run_it_cannot_report_naming_it(policies, want, run_folders,
                                                             tmp_path, capsys):

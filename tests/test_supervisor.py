@@ -563,7 +563,8 @@ def test_config_declared_supervisor_states_only_what_differs(tmp_path):
          Stage("afc")))
     assert cfg.supervisor.fallback == "pid" and cfg.supervisor.last_resort == "afc"
     text = cfg.supervisor.describe()
-    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds 25.688 mm or ")
+    assert text.startswith("pid takes over once the error's RMS over 0.5 s exceeds "
+                           f"{Divergence().level_mm:g} mm or ")
     assert "exceeds 0.6 mm after the stage's first 2 periods" in text
     assert "in pid's loop (given 1 period(s) to settle)" in text
     two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})

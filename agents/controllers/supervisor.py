@@ -145,7 +145,7 @@ class Divergence(Monitor):
 
     name: ClassVar[str] = "divergence"
     what: ClassVar[str] = "the error's RMS"
-    level_mm: float = 25.688
+    level_mm: float = 29.056
     window_s: float = 0.5
     clip_mm: float | None = None
     arm_periods: int = 0
@@ -160,9 +160,9 @@ class LimitCycle(Monitor):
 
     name: ClassVar[str] = "limit_cycle"
     what: ClassVar[str] = "the RMS of the error's one-period change"
-    level_mm: float = 1.935
+    level_mm: float = 3.079
     window_s: float = 3.0
-    clip_mm: float | None = 2.419
+    clip_mm: float | None = 3.849
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:
@@ -175,9 +175,9 @@ class Persistent(Monitor):
 
     name: ClassVar[str] = "persistent"
     what: ClassVar[str] = "the error's own RMS"
-    level_mm: float = 2.3
+    level_mm: float = 3.832
     window_s: float = 3.0
-    clip_mm: float | None = 3.45
+    clip_mm: float | None = 5.748
     arm_periods: int = ARM_PERIODS
 
     def signal(self, e: np.ndarray, past: np.ndarray) -> np.ndarray:

@@ -164,14 +164,14 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
         # quantum and friction of a loop that tracks)
         floor = (math.sqrt(2.0) * UNSTABLE_APERIODIC_MM if isinstance(m, LimitCycle)
                  else floor_mm)
-        level = max(margin * peak, floor)
+        level = round(max(margin * peak, floor), 3)  # as written: calibrating again keeps it
         if not isinstance(m, Divergence) and level >= LEVEL_MAX_MM:
             dropped.append(m.name)
             continue
         # the clip keeps its ratio to the level (it must stay above it to let the monitor trip)
         clip = None if m.clip_mm is None else round(m.clip_mm * max(level / m.level_mm, 1.0),
                                                         3)
-        monitors.append(dataclasses.replace(m, level_mm=round(level, 3), clip_mm=clip))
+        monitors.append(dataclasses.replace(m, level_mm=level, clip_mm=clip))
     names = tuple(m.name for m in monitors)
     fallback = current.stages[1]
     stages = [Stage("policy", names),

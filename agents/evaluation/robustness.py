@@ -145,9 +145,15 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
     """One episode of ``spec`` (a name, or a controller object) on ``sc`` per plant, plant j's
     reset with seed ``seed + j``; one controller object for all of them (a batch), except a
     policy that observes the rig's delays, which is told each plant's
-    (``policies.load_for_plant``)."""
-    if isinstance(spec, str) and tells_delays(spec):
-        loaded = [load_for_plant(spec, sc, p, gains) for p in plants]
+    (``policies.load_for_plant``: one object for the plants of equal delays)."""
+    if isinstance(spec, str) and tells_delays(spec):  # one object per pair of delays told
+        told: dict[tuple[Any, Any], tuple[Policy, str, Any]] = {}
+        loaded = []
+        for p in plants:
+            key = (p.get("pressure_dead_time_s"), p.get("pressure_lag_s"))
+            if key not in told:
+                told[key] = load_for_plant(spec, sc, p, gains)
+            loaded.append(told[key])
     else:
         one = (load_policy(spec, {"scenario": sc}, gains=gains) if isinstance(spec, str)
                else (spec, "MPALegResidual-v0", None))

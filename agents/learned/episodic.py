@@ -29,8 +29,9 @@ contract in ``mpa_gym.task.contract``), never the features a training wrapper co
 nor another env's. :class:`ObservationCheck` refuses any other shape, an observation whose
 phase columns are not a unit vector (sin φ, cos φ of the reference phase, in every observation
 of these envs: the features have no such pair) and one whose reference columns are outside the
-contract's bounds, naming the env id and the shape it takes. The default config's features are
-9 wide, as the residual env's observation: the shape alone cannot tell them apart.
+contract's bounds, naming the env id and the shape it takes. A config's features can be as
+wide as the residual env's observation (9: errors only, one harmonic remodulated, one previous
+action), where the shape alone cannot tell them apart.
 """
 
 from __future__ import annotations

@@ -266,6 +266,16 @@ def tell_delays(policy: Any, scenario: Any) -> Any:
     return policy
 
 
+def told_delays(policy: Any) -> tuple[float, float] | None:
+    """[s] (dead time, lag) a loaded policy (or the policy under a supervisor) was told of its
+    rig, None if it does not observe them."""
+    inner = getattr(policy, "policy", None) if isinstance(policy, Supervised) else policy
+    features = getattr(inner, "features", None)
+    if features is None or not features.delay_observation:
+        return None
+    return tuple(float(v) for v in inner.frontend.known_delay_s)
+
+
 def load_run(run_dir: str | Path, which: str = "final", deployed: bool = False
              ) -> tuple[Any, Any]:
     """(policy, config) of a run folder: the learned policy alone, never its supervisor; a

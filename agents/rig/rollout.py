@@ -44,7 +44,7 @@ from mpa_gym.agents.controllers.supervisor import (
     took_over,
 )
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
-from mpa_gym.agents.learned.policies import load_policy
+from mpa_gym.agents.learned.policies import load_policy, told_delays
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.env import (
@@ -196,6 +196,8 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                                                         "task": {"dt_s": 1.0 / control_hz}},
                                           deployed=True,  # a run: its compiled action path
                                           gains=gains, flag=flag)
+    # a policy that observes the rig's delays is told the scenario's plant's (identify --out's)
+    told = told_delays(policy)
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
@@ -215,7 +217,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
         _write(f, {"event": "session", "started_utc": datetime.datetime.now(datetime.timezone.utc)
                    .isoformat(timespec="seconds"), "pid": os.getpid(), "policy": policy_spec,
                    "scenario": env.plan.scenario.name, "control_hz": control_hz,
-                   "episodes": episodes, "seed": seed})
+                   "episodes": episodes, "seed": seed, "told_delays_s": told})
         try:
             pre = preflight(env)
             _write(f, {"event": "preflight", **pre})
@@ -269,7 +271,8 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
         for m in results:
             m["hand_overs"] = hand_overs(m, stages)
     out: dict[str, Any] = {
-        "episodes": results, "log": str(log_path), "stages": stages,
+        "episodes": results, "log": str(log_path), "stages": stages, "told_delays_s": told,
+        "scenario": env.plan.scenario.name,
         "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
                    "steps": len(env.timing["latency_s"]), "realtime": rt_report,
                    "p99_jitter_ms": float(np.percentile(jitter, 99) * 1e3) if jitter.size
