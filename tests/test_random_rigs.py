@@ -91,6 +91,20 @@ def test_the_audit_flags_a_hand_over_to_a_worse_fallback_and_counts_the_policy_a
     assert _audit(edge, "s", "a", ["s", "a"])["alone_within_pid"] is None
 
 
+def _rig_scenario(period: float) -> dict:
+    """The rig file as a scenario of one rig (its ranges left out) with reference ``period``."""
+    sc = yaml.safe_load(RIGS_FILE.read_text())
+    sc.pop("randomize")
+    sc["reference"]["period_s"] = period
+    return sc
+
+
+def _last_periods_rmse_mm(tr, period: float) -> float:
+    """[mm] position RMSE over an episode's last three reference periods (10 ms steps)."""
+    e = (tr.x - tr.x_ref)[-3 * round(period / 0.01):]
+    return float(np.sqrt(np.mean(e**2)) * 1e3)
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A tiny trained run under the default config's supervisor (its quality does not
@@ -116,28 +130,23 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     # rig 2 of the batch, again: the policy alone in a single env of that rig, reset with the
     # rig's plant and episode seed (the report's seed + the rig's number), told the rig's delays
     period, plant = draw(3, 11)[2]
-    sc = yaml.safe_load(RIGS_FILE.read_text())
-    sc.pop("randomize")
-    sc["reference"]["period_s"] = period
+    sc = _rig_scenario(period)
     policy, _, cfg = load_for_plant(run + ALONE, sc, plant)
     env = gym.make(cfg.env_id, scenario=sc,
                    task={k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
     tr = run_episode(env, policy, 1_000_000 + 2, options={"plant": plant})
-    n = round(period / 0.01)
-    e = (tr.x - tr.x_ref)[-3 * n:]
     assert rr["rigs"][2]["controllers"]["r (alone)"]["position_rmse_mm"] == pytest.approx(
-        float(np.sqrt(np.mean(e**2)) * 1e3), rel=1e-9)
+        _last_periods_rmse_mm(tr, period), rel=1e-9)
     # and the supervised system on that rig is the run under a supervisor built for the rig's
     # scenario: its monitors judge over the rig's period, its fallback rc's delay line is one
     # rig period (a supervisor built for the training scenario's 3 s judged a 2-4 s rig's loop
     # by the error's change over 3 s, and handed it to an rc with a 3 s delay line)
     assert abs(period - 3.0) > 0.1
     supervised, _, _ = load_for_plant(run, sc, plant)
-    assert supervised.n_period == n
+    assert supervised.n_period == round(period / 0.01)
     tr = run_episode(env, supervised, 1_000_000 + 2, options={"plant": plant})
-    e = (tr.x - tr.x_ref)[-3 * n:]
     row = rr["rigs"][2]["controllers"]["r"]
-    assert row["position_rmse_mm"] == pytest.approx(float(np.sqrt(np.mean(e**2)) * 1e3),
+    assert row["position_rmse_mm"] == pytest.approx(_last_periods_rmse_mm(tr, period),
                                                     rel=1e-9)
     assert row["fallback_s"] == take_over_times(tr.t, tr.fallback)["fallback_s"]
     # the report says it, rig by rig
@@ -182,9 +191,7 @@ def test_a_policy_that_observes_delays_is_told_each_rigs_and_each_cells(told):
     # own: rig 1 of seed 11, alone
     rr = random_rigs([told + ALONE], 2, 11, 1_000_000)
     period, plant = draw(2, 11)[1]
-    base = yaml.safe_load(RIGS_FILE.read_text())
-    base.pop("randomize")
-    base["reference"]["period_s"] = period
+    base = _rig_scenario(period)
     scenario = load_scenario(base)
     plant_sc = dataclasses.replace(scenario, plant=dataclasses.replace(
         scenario.plant, pressure_dead_time_s=plant["pressure_dead_time_s"],
@@ -195,10 +202,8 @@ def test_a_policy_that_observes_delays_is_told_each_rigs_and_each_cells(told):
     env = gym.make(env_id, scenario=base,
                    task={k: v for k, v in cfg.env_kwargs["task"].items() if k != "episode_s"})
     tr = run_episode(env, policy, 1_000_000 + 1, options={"plant": plant})
-    n = round(period / 0.01)
-    e = (tr.x - tr.x_ref)[-3 * n:]
     assert rr["rigs"][1]["controllers"]["d (alone)"]["position_rmse_mm"] == pytest.approx(
-        float(np.sqrt(np.mean(e**2)) * 1e3), rel=1e-9)
+        _last_periods_rmse_mm(tr, period), rel=1e-9)
 
 
 def test_held_out_figures_of_a_policy_that_observes_delays_are_told_each_scenarios(told):

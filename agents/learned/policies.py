@@ -266,7 +266,7 @@ def tell_delays(policy: Any, scenario: Any) -> Any:
     return policy
 
 
-def told_delays(policy: Any) -> tuple[float, float] | None:
+def known_delays(policy: Any) -> tuple[float, float] | None:
     """[s] (dead time, lag) a loaded policy (or the policy under a supervisor) was told of its
     rig, None if it does not observe them."""
     inner = getattr(policy, "policy", None) if isinstance(policy, Supervised) else policy

@@ -44,7 +44,7 @@ from mpa_gym.agents.controllers.supervisor import (
     took_over,
 )
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
-from mpa_gym.agents.learned.policies import load_policy, told_delays
+from mpa_gym.agents.learned.policies import known_delays, load_policy
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
 from mpa_gym.hardware.env import (
@@ -197,7 +197,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                                           deployed=True,  # a run: its compiled action path
                                           gains=gains, flag=flag)
     # a policy that observes the rig's delays is told the scenario's plant's (identify --out's)
-    told = told_delays(policy)
+    told = known_delays(policy)
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
