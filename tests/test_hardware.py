@@ -52,12 +52,19 @@ def compare_with_sim(url, n=100, scenario="nominal", substeps=2):
         sobs, _ = sim.reset(seed=0, options={"initial_state": {"x_m": float(obs[0]),
                                                                "v_mps": float(obs[1])}})
         rng = np.random.default_rng(0)
-        dx, vmax = [], 0.0
+        dx, vmax, arrived = [], 0.0, -np.inf
         for _ in range(n):
             a = rng.uniform(-0.3, 0.3, 2)
             _, _, hte, htr, hinfo = hw.step(a)
             sobs, _, ste, s_tr, sinfo = sim.step(a)
             assert "fault" not in hinfo
+            # the step's own timing on the episode's clock: its command went out after the
+            # frame the last step observed, and the frame it observes came after its command
+            # (the env waits for the frame that acknowledges it), within the period and the
+            # staleness allowed
+            sent = hinfo["command_sent_s"]
+            assert arrived <= sent < hinfo["telemetry_arrived_s"] <= sent + hw.cfg.dt_s + 0.2
+            arrived = hinfo["telemetry_arrived_s"]
             assert (hte, htr) == (ste, s_tr)
             np.testing.assert_allclose(hinfo["pressure_cmd_bar"], sinfo["pressure_cmd_bar"],
                                        atol=1e-5)  # float32 on the wire

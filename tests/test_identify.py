@@ -24,12 +24,15 @@ from mpa_gym.agents.learned.policies import load_policy
 from mpa_gym.agents.rig.coverage import SCORED, coverage, truth_of
 from mpa_gym.agents.rig.coverage import show as show_coverage
 from mpa_gym.agents.rig.identify import (
+    RESOLUTION,
     LogData,
     fit_regulator,
     identify,
     load_log,
+    mechanics_intervals,
     read_sessions,
     show,
+    simulate_exact,
     simulate_pressure,
 )
 from mpa_gym.agents.rig.rollout import rollout
@@ -475,6 +478,84 @@ def test_the_fit_runs_on_the_logged_time_stamps_of_a_stalled_loop(tmp_path):
     even = [{**r, "t_s": 0.01 * (k + 1)} for k, r in enumerate(steps)]
     wrong = fit_regulator(load_log(_write(tmp_path / "even.jsonl", None, even)))
     assert wrong.rmse_bar > 5 * fit.rmse_bar, (wrong.rmse_bar, fit.rmse_bar)
+
+
+def test_the_fit_times_a_rig_log_by_when_commands_left_and_frames_arrived(tmp_path):
+    """A rig's steps: each command leaves 0.8-1.6 ms after its period starts (the controller's
+    compute), and the frame observed at the period's end was sampled up to 1 ms before it (a
+    device streaming at 1 kHz). The log says when (``command_sent_s``,
+    ``telemetry_arrived_s``), and the fit recovers the regulator (30 ms lag, 21.5 ms dead
+    time: between two samples) of the numpy reference (``dynamics.regulator_pressure``,
+    solved exactly between the events) from them; timed by the schedule instead (the same
+    records without them) the compute and the frame's age read as 1.7 ms more dead time."""
+    reg = dataclasses.replace(DEFAULT_PARAMS,
+                              regulator=RegulatorParams(lag=0.03, dead_time=0.0215, slew=0.0))
+    rng = np.random.default_rng(5)
+    n, dt = 1500, 0.01
+    start = dt * np.arange(n)
+    sent = start + rng.uniform(0.0008, 0.0016, n)
+    arrived = start + dt - rng.uniform(0.0, 0.001, n)
+    cmd = 3 * BAR + 0.3 * BAR * (rng.random((n, 2)) < 0.5)
+    events = sorted([(t, 0, k) for k, t in enumerate(sent + 0.0215)]
+                    + [(t, 1, k) for k, t in enumerate(arrived)])
+    pres, p, u, t = np.empty((n, 2)), np.full(2, 3 * BAR), np.full(2, 3 * BAR), 0.0
+    for when, kind, k in events:
+        p = dynamics.regulator_pressure(p, u, when - t, reg)
+        t = when
+        if kind == 0:
+            u = cmd[k]
+        else:
+            pres[k] = p
+    steps = [{"episode": 0, "t_s": float(start[k] + dt), "x_m": 0.8,
+              "pressure_bar": (pres[k] / BAR).tolist(),
+              "pressure_cmd_bar": (cmd[k] / BAR).tolist(),
+              "command_sent_s": float(sent[k]), "telemetry_arrived_s": float(arrived[k])}
+             for k in range(n)]
+    log = _write(tmp_path / "rig.jsonl", {"event": "session", "control_hz": 100.0}, steps)
+    fit = fit_regulator(load_log(log))
+    # 0.1 ms: the noise-free reference is exact, so what is left is the fit's tolerance
+    assert abs(fit.values["pressure_dead_time_s"] - 0.0215) < 1e-4, fit.values
+    assert abs(fit.values["pressure_lag_s"] - 0.03) < 1e-4, fit.values
+    drop = ("command_sent_s", "telemetry_arrived_s")
+    schedule = fit_regulator(load_log(_write(
+        tmp_path / "schedule.jsonl", {"event": "session", "control_hz": 100.0},
+        [{k: v for k, v in r.items() if k not in drop} for r in steps])))
+    assert schedule.values["pressure_dead_time_s"] - 0.0215 > 1e-3, schedule.values
+
+
+def test_the_exact_twin_replays_a_sim_log_of_its_plant(tmp_path):
+    """``simulate_exact`` (the plant run continuously under the logged commands, the twin
+    whose fit gives the model bias) against the sim env, another integration of the same
+    plant: on a log of the sim env with braid and slider friction and a 20 ms dead time, the
+    twin of the true plant replays the logged pressures and positions. The first second is
+    left out: the twin starts from the first sample and a finite-difference velocity, and the
+    command held before the log began is unknown to it."""
+    plant = {"mass_kg": 3.74 * 1.4, "C1_Pa": 1.15 * C1, "pressure_lag_s": 0.02,
+             "pressure_dead_time_s": 0.02, "braid_friction_ratio": 0.01,
+             "slider_friction_N": 0.5}
+    d = load_log(sim_log(tmp_path / "sim.jsonl", plant, seconds=10.0))[0]
+    values = {"gamma_Ns_per_m": DEFAULT_PARAMS.mpa.gamma, "C2_Pa": DEFAULT_PARAMS.mpa.C2,
+              "slider_viscous_Ns_per_m": 0.0, "pressure_slew_bar_per_s": 0.0, **plant}
+    twin = simulate_exact(d, values)
+    late = d.t_meas > 1.0
+    # pressures: exact closed forms both, so to rounding; positions: the start's velocity error
+    # (measured 3.5 µm after 1 s; its decay is the leg's damping), against 50 mm of motion
+    assert np.abs(twin.p - d.p)[late].max() < 1e-3  # [Pa]
+    assert np.abs(twin.x - d.x)[late].max() < 1e-5  # [m]
+    assert np.ptp(d.x) > 0.04
+
+
+def test_mechanics_intervals_reach_the_value_less_its_model_bias():
+    """The mechanics' interval spans the estimate and the estimate less its model bias, each
+    widened by √((2 σ)² + resolution²), inside the field's range."""
+    est = {"C1_Pa": 200e3, "mass_kg": 4.0}
+    sd = {"C1_Pa": 500.0, "mass_kg": 1e-4}
+    half = {k: math.hypot(2 * sd[k], RESOLUTION[k]) for k in est}
+    plain = mechanics_intervals(est, sd, 2.0)
+    biased = mechanics_intervals(est, sd, 2.0, {"C1_Pa": -6e3, "mass_kg": 2e-3})
+    assert plain["C1_Pa"] == pytest.approx([200e3 - half["C1_Pa"], 200e3 + half["C1_Pa"]])
+    assert biased["C1_Pa"] == pytest.approx([200e3 - half["C1_Pa"], 206e3 + half["C1_Pa"]])
+    assert biased["mass_kg"] == pytest.approx([3.998 - half["mass_kg"], 4.0 + half["mass_kg"]])
 
 
 @REALTIME

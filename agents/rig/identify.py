@@ -36,7 +36,9 @@ Intervals (``intervals`` in the report, at ``sigmas``, default 2 σ): what the l
 point. The residuals of both fits are correlated in time (model error: a real loop's timing, the
 friction's shape, a segment's drift), so an s² (JᵀJ)⁻¹ covariance, which assumes them independent,
 is many times too narrow. The mechanics' intervals are ± sigmas σ of the sandwich covariance with
-Newey–West scores over ``HAC_WINDOW_S`` (``_std``); the regulator's are profile likelihoods
+Newey–West scores over ``HAC_WINDOW_S`` (``_std``), stretched to reach the estimate less its
+model bias (``model_bias``: the fit's own error on the log's exact twin, a systematic error the
+residuals do not show); the regulator's are profile likelihoods
 (``fit_regulator``), which also span what the samples cannot resolve (a dead time between two
 sampling instants when there is no lag; a slew limit that no step reached: "r ≥ r_min or
 unlimited"), and the dead time's reaches the link's delay below the fit (``link_delay_s``). A
@@ -55,7 +57,7 @@ plotted against the log.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -88,9 +90,14 @@ HAC_WINDOW_S = 0.5
 # 0.011 N and 0.08 N s/m); it is added in quadrature to sigmas × σ (``mechanics_intervals``).
 # Without it those intervals excluded the truth on 4 of the 42 (plant, value) pairs (a
 # friction-free leg's mass to ±0.03 g, 0.09 g off).
+# That floor stays; what the fit's model gets wrong on a given log is also measured on the log
+# itself (``model_bias``): the sim logs had whole-period dead times, and a dead time that falls
+# between samples pulls C1 and C2 apart by up to several kPa, more than 2 σ.
 RESOLUTION = {"mass_kg": 1e-3, "gamma_Ns_per_m": 2.0, "C1_Pa": 300.0, "C2_Pa": 300.0,
               "braid_friction_ratio": 2.5e-3, "slider_friction_N": 0.03,
               "slider_viscous_Ns_per_m": 0.25}
+# [s] the exact twin's longest RK4 step (``simulate_exact``; the device emulator's is 1 ms)
+EXACT_STEP_S = 5e-4
 
 
 @dataclass(frozen=True)
@@ -115,14 +122,39 @@ class LogData:
 
 def _timing(rows: list[dict[str, Any]], t: np.ndarray, dt: float
             ) -> tuple[np.ndarray, np.ndarray]:
-    """(command times, measurement times) [s] of a log's steps. A step's period (start to
-    start) is the loop's measured ``period_s`` where the log has it, else the step of the time
-    stamps ``t_s``: a late step (a stall, jitter) held its predecessor's command longer, and
-    the fit must see that rather than the nominal period. A step's telemetry is read at its
-    deadline, a period ``dt`` after its start, or at the next start if that came sooner."""
+    """(command times, measurement times) [s] of a log's steps, from the first command.
+
+    A rig's log says when each command went out and when the telemetry frame its step
+    observed arrived (``command_sent_s``, ``telemetry_arrived_s``: ``mpa_gym.hardware.env``'s
+    ``LINK_INFO_KEYS``): those are the times. A step's command goes out when the controller
+    answers, after its compute, and the newest frame at the period's end is up to one telemetry
+    period old, so timed by the schedule (a command at each period's start, its observation a
+    period later) the fit would read both as regulator dead time (1.3 ms on the emulated rigs
+    of ``mpa-gym identify --coverage``, whose intervals then missed the true dead time). A step
+    that sent no command (a stale observation: the device held the last one) holds it on.
+
+    A log without them (a simulation's, or an older rig log), or whose times contradict each
+    other (a frame before its command), is timed by the schedule: a
+    step's period (start to start) is the loop's measured ``period_s`` where the log has it,
+    else the step of the time stamps ``t_s``: a late step (a stall, jitter) held its
+    predecessor's command longer, and the fit must see that rather than the nominal period. A
+    step's telemetry is read at its deadline, a period ``dt`` after its start, or at the next
+    start if that came sooner."""
     n = len(rows)
     period = np.array([r.get("period_s", math.nan) for r in rows], dtype=float)[1:]
     period = np.where(np.isfinite(period) & (period > 0), period, np.diff(t))
+    sent = np.array([r.get("command_sent_s", math.nan) for r in rows], dtype=float)
+    arrived = np.array([r.get("telemetry_arrived_s", math.nan) for r in rows], dtype=float)
+    if np.isfinite(arrived).all() and np.isfinite(sent[0]):
+        t_cmd = np.empty(n + 1)
+        t_cmd[0] = sent[0]
+        for j in range(1, n):  # a step that sent nothing held the last command: any time
+            # between the frames before and after it times that alike
+            t_cmd[j] = sent[j] if np.isfinite(sent[j]) else 0.5 * (arrived[j - 1] + arrived[j])
+        t_cmd[n] = max(t_cmd[n - 1], arrived[-1]) + dt
+        if np.all(np.diff(t_cmd) > 0) and np.all((arrived >= t_cmd[:-1])
+                                                  & (arrived <= t_cmd[1:])):
+            return t_cmd - sent[0], arrived - sent[0]
     t_cmd = np.concatenate([[0.0], np.cumsum(period), [0.0]])
     t_cmd[n] = t_cmd[n - 1] + dt
     return t_cmd, np.minimum(t_cmd[:-1] + dt, t_cmd[1:])
@@ -631,6 +663,60 @@ def simulate_full(d: LogData, values: dict[str, float], x0: float, v0: float, su
     return x, p
 
 
+@numba.njit(**JIT)
+def _simulate_exact(cmd, t_cmd, t_meas, x0, v0, p0, dead, consts, out_x, out_p):
+    X, V, Pe, Pf = x0, v0, p0[0], p0[1]
+    ce, cf = p0[0], p0[1]
+    t, k, n = t_cmd[0], 0, cmd.shape[0]
+    for j in range(t_meas.shape[0]):
+        target = t_meas[j]
+        while t < target:
+            stop = target
+            if k < n and t_cmd[k] + dead <= target:
+                stop = max(t_cmd[k] + dead, t)
+            h = stop - t
+            if h > 0.0:
+                X, V, Pe, Pf = fast.plant_step(X, V, Pe, Pf, ce, cf, ce, cf, 0.0, 0.0, h, consts,
+                                               max(1, int(np.ceil(h / EXACT_STEP_S))))
+                t = stop
+            if k < n and t_cmd[k] + dead <= t:  # the delayed command reaches the regulator
+                ce, cf = cmd[k, 0], cmd[k, 1]
+                k += 1
+        out_x[j] = X
+        out_p[j, 0], out_p[j, 1] = Pe, Pf
+
+
+def simulate_exact(d: LogData, values: dict[str, float], params: Params = DEFAULT_PARAMS
+                   ) -> LogData:
+    """The log ``d`` would be from a rig that is exactly ``values``: the plant run
+    continuously from the log's first state, its regulator driven by the logged commands at
+    the logged times (command j from ``t_cmd[j]`` + dead time, switching between samples
+    where the dead time says), the pressures exact between samples (``fast.plant_step``, RK4
+    steps of at most ``EXACT_STEP_S`` split at every switch), sampled at the log's times,
+    noise-free. ``fit_mechanics`` sees the pressures only at the samples (linear between
+    them); what it then gets wrong on this twin is its model's error on this log
+    (``model_bias``)."""
+    x = np.empty(d.x.size)
+    p = np.empty((d.x.size, 2))
+    x0, v0 = _initial_states(d, np.zeros(1, dtype=np.int64))[0]
+    _simulate_exact(d.cmd, d.t_cmd, d.t_meas, float(x0), float(v0), d.p[0].astype(float),
+                    float(values["pressure_dead_time_s"]), consts_of(values, params), x, p)
+    return replace(d, x=x, p=p)
+
+
+def model_bias(logs: list[LogData], values: dict[str, float], nominal: dict[str, float],
+               segment_s: float, params: Params = DEFAULT_PARAMS) -> dict[str, float]:
+    """Per mechanics value, how far ``fit_mechanics`` lands from ``values`` on the logs'
+    exact twins (``simulate_exact``): the pull of the fit's own model of the pressures
+    between samples on these logs, a systematic error no covariance of the residuals sees.
+    On emulated rigs (``identify --coverage``) the twins of the true plants reproduced most
+    of the fit's error: C1 by −2.6, −5.7 and −13.3 kPa where the emulator's logs gave −4.9,
+    −6.9 and −14.9 kPa, beyond 2 σ."""
+    twins = [simulate_exact(d, values, params) for d in logs]
+    est, _, _ = fit_mechanics(twins, nominal, segment_s, params=params)
+    return {k: est[k] - values[k] for k in est}
+
+
 def validate(d: LogData, values: dict[str, float], settle_s: float,
              params: Params = DEFAULT_PARAMS) -> tuple[float, np.ndarray, np.ndarray, int]:
     """(position RMSE after the first ``settle_s``, simulated X, simulated pressures, index
@@ -680,13 +766,15 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
     mech, mech_sd, fit_rmse = fit_mechanics(fit_logs, nominal, segment_s, params=params)
     values = {**mech, **reg.values}
     unc: dict[str, float | None] = {**mech_sd, **reg.std, "thickness_m": None}
-    intervals = {**mechanics_intervals(mech, mech_sd, sigmas), **reg.intervals}
+    bias = model_bias(fit_logs, {**mech, **reg.values}, nominal, segment_s, params)
+    intervals = {**mechanics_intervals(mech, mech_sd, sigmas, bias), **reg.intervals}
     rmse, x_sim, p_sim, k = validate(held, values, settle_s, params)
     plant = {"extra_mass_kg": 0.0, **{k_: float(v) for k_, v in values.items()},
              "thickness_m": float(nom_p.mpa.thickness)}
     weak = [k_ for k_ in MECH if intervals[k_][1] - intervals[k_][0] > abs(plant[k_])]
     report: dict[str, Any] = {
         "plant": plant, "uncertainty": unc, "intervals": intervals, "sigmas": sigmas,
+        "model_bias": bias,
         "validation_rmse_m": rmse, "scenario_yaml": None, "fit_rmse_m": fit_rmse,
         "pressure_fit_rmse_bar": reg.rmse_bar, "holdout_s": held.x.size * held.dt,
         "session": {"index": index, "sessions": len(sessions),
@@ -695,7 +783,9 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
         "notes": ["thickness_m is kept nominal: only V_r(t)·C1 and V_r(t)·C2 are identifiable "
                   "(C1_Pa, C2_Pa are the values at the nominal thickness)",
                   f"intervals: ± {sigmas:g} σ of the sandwich covariance with correlated "
-                  f"residuals (mechanics), the profile likelihood at {sigmas:g} σ (regulator)",
+                  f"residuals (mechanics; reaching the estimate less its model bias, the fit's "
+                  f"error on the log's exact twin), the profile likelihood at {sigmas:g} σ "
+                  f"(regulator)",
                   *reg.notes],
     }
     if weak:
@@ -724,15 +814,18 @@ def _describe(s: Session) -> str:
             f"{len(s.steps)} steps")
 
 
-def mechanics_intervals(est: dict[str, float], sd: dict[str, float], sigmas: float
-                        ) -> dict[str, list[float | None]]:
-    """[low, high] = estimate ± √((``sigmas`` σ)² + resolution²) (``RESOLUTION``), inside
-    each field's allowed range."""
+def mechanics_intervals(est: dict[str, float], sd: dict[str, float], sigmas: float,
+                        bias: dict[str, float] | None = None) -> dict[str, list[float | None]]:
+    """[low, high] = the stretch from the estimate to the estimate less its model bias
+    (``model_bias``; none: 0), widened by √((``sigmas`` σ)² + resolution²)
+    (``RESOLUTION``) each way, inside each field's allowed range. The estimate is the fit's;
+    the interval reaches the value the bias says the rig more likely has."""
     out: dict[str, list[float | None]] = {}
     for key, v in est.items():
         lo_ok, hi_ok, _, _ = PLANT_RANGES[key]
         half = math.hypot(sigmas * sd[key], RESOLUTION[key])
-        out[key] = [max(v - half, lo_ok), min(v + half, hi_ok)]
+        corrected = v - (bias or {}).get(key, 0.0)
+        out[key] = [max(min(v, corrected) - half, lo_ok), min(max(v, corrected) + half, hi_ok)]
     return out
 
 

@@ -55,8 +55,15 @@ CONTROL_HZ_RANGE = (1.0, 500.0)
 SPIN_S = 3e-4  # [s] the loop polls (spins) through this long before each deadline (wait_s)
 # What the rig's step info holds beyond the sim envs' (``task.contract.step_info``): its timing
 # and link figures, on every step; ``fault`` (why it stopped) on the step that stops it.
+# ``command_sent_s`` and ``telemetry_arrived_s`` are on the episode's clock (the PC's monotonic
+# time since its first period began): when the step's command went out (NaN: none was sent)
+# and when the telemetry frame its observation shows arrived. A step's observation is read
+# at the period's end, a period after the period began, but the command goes out when the
+# caller answers, later by its compute time, and the newest frame at the period's end is up
+# to one telemetry period old: identification (``agents/rig/identify.py``) times the log by
+# these, not by the schedule.
 LINK_INFO_KEYS = ("overruns", "period_s", "jitter_s", "latency_s", "corrupt_frames",
-                  "late_telemetry", "device_faults")
+                  "late_telemetry", "device_faults", "command_sent_s", "telemetry_arrived_s")
 
 
 def wait_s(left_s: float, spin_s: float) -> float:
@@ -157,7 +164,9 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
 
     `info` on every step: the sim envs' keys and `overruns`, `period_s`, `jitter_s`,
     `latency_s` (command to acknowledging telemetry), `corrupt_frames`, `late_telemetry`,
-    `device_faults` (`LINK_INFO_KEYS`), and `fault` when the rig stopped.
+    `device_faults`, `command_sent_s` and `telemetry_arrived_s` (when the step's command went
+    out and its observation's frame arrived, on the episode's clock; `LINK_INFO_KEYS`), and
+    `fault` when the rig stopped.
 
     ## Version History
 
@@ -214,6 +223,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._seq = 0
         self._tel: Any = None  # newest telemetry
         self._tel_time = -math.inf  # [s] monotonic time it arrived
+        self._t0 = math.nan  # [s] monotonic time the episode's first period began
         self._sent: dict[int, float] = {}  # command seq -> send time, for latency
         self._latency: list[float] = []
         self._closed = False
@@ -350,6 +360,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._prev = p_hold.astype(float).copy()
         self._j = 0
         self._deadline = time.monotonic()  # the first period starts now
+        self._t0 = self._deadline  # the episode clock's zero (command_sent_s, ...)
         self._obs_time = self._tel_time  # arrival of the telemetry the observation shows
         self._last_start = math.nan
         self.overruns = 0
@@ -467,7 +478,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                     "meanwhile")
         period = start - self._last_start
         self._last_start = start
-        cmd, flags, late_ack = self._prev, 0, None
+        cmd, flags, late_ack, sent_at = self._prev, 0, None, math.nan
         if slow is None:
             cmd = np.zeros(2)
             for m in range(2):
@@ -477,7 +488,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
                 flags |= f
             self._prev = cmd
             self._send(proto.Command, float(cmd[0]), float(cmd[1]))
-            sent = self._seq
+            sent, sent_at = self._seq, self._sent[self._seq]
             self.run_deferred()  # the command is out: the rest of the period is slack
             # this period's end: one period on, or, after an overrun, one period after this
             # (late) start, so the command still gets a whole period before it is observed
@@ -519,7 +530,7 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             self.timing["period_s"].append(period)
         latency = self._latency[-1] if self._latency else math.nan
         self.timing["latency_s"].append(latency)
-        info = self._info(out, period, latency)
+        info = self._info(out, period, latency, sent_at)
         if reason is not None:
             info["fault"] = reason
         if terminated:
@@ -527,8 +538,8 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
         self._done = terminated or truncated
         return self._observe(), float(out[C.O_R]), terminated, truncated, info
 
-    def _info(self, out: np.ndarray, period: float = math.nan, latency: float = math.nan
-              ) -> dict[str, Any]:
+    def _info(self, out: np.ndarray, period: float = math.nan, latency: float = math.nan,
+              sent_at: float = math.nan) -> dict[str, Any]:
         """The sim envs' info (``task.contract.step_info`` of the output row ``out`` and the
         newest telemetry) and the rig's ``LINK_INFO_KEYS``."""
         t, j = self._tel, self._j
@@ -540,6 +551,8 @@ class HardwareLegEnv(gym.Env[np.ndarray, np.ndarray]):
             "latency_s": latency, "corrupt_frames": self.decoder.corrupt,
             "late_telemetry": self.late_telemetry,
             "device_faults": int(t.faults),
+            "command_sent_s": sent_at - self._t0,
+            "telemetry_arrived_s": self._tel_time - self._t0,
         }
 
     def close(self) -> None:
