@@ -141,8 +141,6 @@ def _timing(rows: list[dict[str, Any]], t: np.ndarray, dt: float
     step's telemetry is read at its deadline, a period ``dt`` after its start, or at the next
     start if that came sooner."""
     n = len(rows)
-    period = np.array([r.get("period_s", math.nan) for r in rows], dtype=float)[1:]
-    period = np.where(np.isfinite(period) & (period > 0), period, np.diff(t))
     sent = np.array([r.get("command_sent_s", math.nan) for r in rows], dtype=float)
     arrived = np.array([r.get("telemetry_arrived_s", math.nan) for r in rows], dtype=float)
     if np.isfinite(arrived).all() and np.isfinite(sent[0]):
@@ -155,6 +153,8 @@ def _timing(rows: list[dict[str, Any]], t: np.ndarray, dt: float
         if np.all(np.diff(t_cmd) > 0) and np.all((arrived >= t_cmd[:-1])
                                                   & (arrived <= t_cmd[1:])):
             return t_cmd - sent[0], arrived - sent[0]
+    period = np.array([r.get("period_s", math.nan) for r in rows], dtype=float)[1:]
+    period = np.where(np.isfinite(period) & (period > 0), period, np.diff(t))
     t_cmd = np.concatenate([[0.0], np.cumsum(period), [0.0]])
     t_cmd[n] = t_cmd[n - 1] + dt
     return t_cmd, np.minimum(t_cmd[:-1] + dt, t_cmd[1:])
@@ -766,7 +766,7 @@ def identify(log: str | Path, out: str | Path | None = None, scenario: Any = "no
     mech, mech_sd, fit_rmse = fit_mechanics(fit_logs, nominal, segment_s, params=params)
     values = {**mech, **reg.values}
     unc: dict[str, float | None] = {**mech_sd, **reg.std, "thickness_m": None}
-    bias = model_bias(fit_logs, {**mech, **reg.values}, nominal, segment_s, params)
+    bias = model_bias(fit_logs, values, nominal, segment_s, params)
     intervals = {**mechanics_intervals(mech, mech_sd, sigmas, bias), **reg.intervals}
     rmse, x_sim, p_sim, k = validate(held, values, settle_s, params)
     plant = {"extra_mass_kg": 0.0, **{k_: float(v) for k_, v in values.items()},
