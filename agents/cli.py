@@ -404,7 +404,8 @@ def show_evaluate(o: dict[str, Any]) -> str:
                       + ("" if a["alone_within_pid"] is None else
                          f", the policy alone within {rr['ratio']:g}x pid on "
                          f"{a['alone_within_pid']:.0%}")
-                      + f", hand-overs on {len(a['hand_overs'])}")
+                      + f", hand-overs on {len(a['hand_overs'])}"
+                      + f", a fallback chosen on the model on {len(a.get('chosen') or [])}")
     for ctrl, a in (o.get("no_harm") or {}).items():
         extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
                   "cases" + (" (listed in the report)" if a["harm"] else ""))
@@ -451,7 +452,8 @@ def show_summary(summ: dict[str, Any]) -> str:
         rows.append([row, KINDS.get(e0["kind"], e0["kind"]), *cells])
     lines = ["summary: mean over each group's scenarios, position RMSE [mm] / stiffness RMSE "
              "[% of k̂] (several runs: IQM [95 % CI] over the runs); * best of the group; "
-             "‡k/n: a fallback took over in k of n episodes (the supervised loop's figure)",
+             "‡k/n: a fallback drove in k of n episodes, handed the loop or chosen on the "
+             "model (the supervised loop's figure)",
              _table(rows, ["controller", "who drove", *(f"{g['title']} ({len(g['scenarios'])})"
                                                          for g in groups.values())])]
     for g in groups.values():
@@ -690,6 +692,10 @@ def show_rollout(o: dict[str, Any]) -> str:
         lines.append(f"the policy was told the rig's dead time {dead * 1e3:g} ms and lag "
                      f"{lag * 1e3:g} ms (scenario {o['scenario']!r}'s plant; roll out with the "
                      "scenario `mpa-gym identify --out` wrote for this rig to tell it the rig's)")
+    if o.get("predicted_mm"):  # the supervisor's start, chosen on the scenario's plant
+        lines.append("predicted on the model (scenario " + repr(o["scenario"]) + "'s plant), "
+                     "position RMSE [mm]: " + ", ".join(
+                         f"{c} {v:.3f}" for c, v in o["predicted_mm"].items()))
     for i, m in enumerate(o["episodes"]):
         lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "
                      f"{m['position_max_mm']:.3f} mm, stiffness RMSE "

@@ -25,6 +25,7 @@ from mpa_gym.agents.controllers.supervisor import (
     Divergence,
     LimitCycle,
     Persistent,
+    Selection,
     Stage,
     Supervised,
     SupervisorSpec,
@@ -485,10 +486,11 @@ def test_config_names_the_bad_supervisor_field(tmp_path, bad, match):
 
 def test_config_supervisor_defaults_and_round_trip(tmp_path):
     cfg = _config(tmp_path, {"fallback": "mbfb", "aperiodic_mm": 2.5})
-    # a flat section: the policy judged on divergence and limit cycle, the fallback to the end
+    # a flat section: the policy judged on divergence and limit cycle, the fallback to the end,
+    # the policy always starting (runs written in that form were evaluated so)
     assert cfg.supervisor == SupervisorSpec(
         (Divergence(15.0, 0.5, None, 0), LimitCycle(2.5, 3.0, None, ARM_PERIODS)),
-        (Stage("policy", ("divergence", "limit_cycle")), Stage("mbfb")))
+        (Stage("policy", ("divergence", "limit_cycle")), Stage("mbfb")), select=None)
     assert cfg.supervisor.last_resort is None  # off unless asked for
     assert "ff alone" in _config(tmp_path, {"last_resort": "ff"}).supervisor.describe()
     assert "adaptive feedforward" in _config(tmp_path, {"last_resort": "afc"}).supervisor.describe()
@@ -544,7 +546,13 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"supervisor\.stages has 1 stage\(s\): allowed 2 \(the policy, a fallback\) or 3"),
     ({"stages": DEFAULT_STAGES_CFG, "fallback": "pid"},
      r"supervisor: unknown key\(s\) \['fallback'\]; allowed keys are "
-     r"\['gains', 'monitors', 'stages'\]"),
+     r"\['gains', 'monitors', 'select', 'stages'\]"),
+    ({"stages": DEFAULT_STAGES_CFG, "select": {"ratio": 0.5}},
+     r"supervisor\.select\.ratio=0\.5 is outside the allowed range \[1, 10\]"),
+    ({"stages": DEFAULT_STAGES_CFG, "select": {"margin": 1.5}},
+     r"supervisor\.select: unknown key\(s\) \['margin'\]; allowed keys are \['ratio'\]"),
+    ({"stages": DEFAULT_STAGES_CFG, "select": 1.5},
+     r"supervisor\.select=1\.5 must be null or a mapping with keys among \['ratio'\]"),
 ])
 def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
     with pytest.raises(ConfigError, match=r"mpa_gym\." + match):
@@ -567,8 +575,17 @@ def test_config_declared_supervisor_states_only_what_differs(tmp_path):
                            f"{Divergence().level_mm:g} mm or ")
     assert "exceeds 0.6 mm after the stage's first 2 periods" in text
     assert "in pid's loop (given 1 period(s) to settle)" in text
+    assert text.endswith("; the loop starts at the stage predicted best on the model (each "
+                         "stage's controller alone), the policy unless another is predicted "
+                         "over 1.2x better")
     two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})
     assert two.supervisor.last_resort is None and two.supervisor.fallback == "mbfb"
+    # the start chosen on the model: the default's ratio, another, or never (null)
+    assert two.supervisor.select == Selection(1.2)
+    assert _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": {"ratio": 1.5}}
+                   ).supervisor.select == Selection(1.5)
+    off = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": None}).supervisor
+    assert off.select is None and "predicted" not in off.describe()
 
 
 @REALTIME
@@ -714,7 +731,7 @@ def test_the_default_config_declares_the_dataclass_defaults():
     # its own (the levels chosen on the sweep, pid first), whose numbers are pinned to the old
     # code by test_a_flat_section_drives_exactly_as_before.
     section = yaml.safe_load(open("configs/ppo_residual.yaml"))["mpa_gym"]["supervisor"]
-    assert set(section) == {"monitors", "stages"}
+    assert set(section) == {"monitors", "stages", "select"}
     assert SupervisorSpec.from_config(section) == SupervisorSpec()
     assert SupervisorSpec.from_config({"stages": section["stages"]}) == SupervisorSpec()
     assert SupervisorSpec.from_config(DEFAULT_FLAT).fallback == "pid"

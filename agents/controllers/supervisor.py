@@ -76,6 +76,7 @@ LAST_RESORTS = {"ff": "ff alone",
 ARM_PERIODS = 2  # periods the limit-cycle and persistent monitors leave out of a stage
 GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
 LEVEL_MAX_MM, WINDOW_MAX_S, PERIODS_MAX = 100.0, 30.0, 100  # the monitors' allowed ranges
+RATIO_MAX = 10.0  # Selection.ratio's allowed range is [1, this]
 
 
 def _check_monitor(level_mm: Any, window_s: Any, clip_mm: Any, arm_periods: Any,
@@ -211,6 +212,35 @@ class Stage:
                              "delay (a stage without monitors is never judged)")
 
 
+@dataclass(frozen=True)
+class Selection:
+    """How the stage the loop starts at is chosen before the episode: every stage's controller
+    alone is simulated on the model (``mpa_gym.agents.evaluation.select``: the scenario's plant,
+    the rig's as ``mpa-gym identify`` wrote it) and scored as a report scores it; the policy
+    starts unless a later stage is predicted better by more than ``ratio`` (then the best
+    predicted stage starts, and its monitors and the cascade after it stay as declared)."""
+
+    ratio: float = 1.2  # the policy starts unless its predicted RMSE exceeds ratio x the best
+
+    def __post_init__(self) -> None:
+        check_range("supervisor.select.ratio", self.ratio, 1.0, RATIO_MAX)
+
+    def start(self, predicted_mm: list[float]) -> int:
+        """The stage to start at from each stage's predicted position RMSE [mm] (inf: unstable
+        or terminated on the model), in cascade order: ``POLICY`` unless a later stage's is
+        below the policy's / ratio, else the best such stage (the earliest of equals)."""
+        if len(predicted_mm) < 2:
+            raise ValueError(f"predicted_mm={predicted_mm!r}: one figure per stage, at least "
+                             "two stages")
+        best = int(np.argmin(predicted_mm[1:])) + 1
+        return best if self.ratio * predicted_mm[best] < predicted_mm[POLICY] else POLICY
+
+    def describe(self) -> str:
+        return (f"the loop starts at the stage predicted best on the model (each stage's "
+                f"controller alone), the policy unless another is predicted over "
+                f"{self.ratio:g}x better")
+
+
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
 DEFAULT_STAGES = (Stage("policy", ("divergence", "limit_cycle", "persistent")),
                   Stage("rc", ("divergence",), GRACE_PERIODS),
@@ -232,11 +262,15 @@ class SupervisorSpec:
     # the later stages' gains (mpa_gym.agents.controllers.gains): a gains file's path or its
     # ``gains`` mapping inline, read once into the mapping; none: the baselines' defaults
     gains: Any = None
+    select: Selection | None = Selection()  # the start chosen on the model; None: the policy
+
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "monitors", tuple(self.monitors))
         object.__setattr__(self, "stages", tuple(self.stages))
         object.__setattr__(self, "gains", load_gains(self.gains, "supervisor.gains"))
+        if self.select is not None and not isinstance(self.select, Selection):
+            raise ValueError(f"supervisor.select={self.select!r} must be a Selection or None")
         names = tuple(m.name for m in self.monitors)
         for m in self.monitors:
             if type(m) is not MONITORS.get(m.name):
@@ -281,7 +315,7 @@ class SupervisorSpec:
         folders written before (``from_flat``). Unknown keys are refused by name."""
         if isinstance(value, cls):
             return value
-        declared = ["monitors", "stages", "gains"]
+        declared = ["monitors", "stages", "gains", "select"]
         if not isinstance(value, dict):
             raise ValueError(f"supervisor={value!r} must be a mapping with keys {declared} "
                              f"(or the flat form's {list(FLAT_KEYS)})")
@@ -294,7 +328,7 @@ class SupervisorSpec:
         monitors = _monitors(value.get("monitors"))
         # the monitors the stages use (if they name none known, all: the error lists them)
         return cls(tuple(m for m in monitors if m.name in used) or monitors, stages,
-                   value.get("gains"))
+                   value.get("gains"), _selection(value.get("select", {})))
 
     @classmethod
     def from_flat(cls, value: dict[str, Any]) -> SupervisorSpec:
@@ -336,7 +370,7 @@ class SupervisorSpec:
             stages = (Stage("policy", tuple(m.name for m in monitors)),
                       Stage(f["fallback"], ("divergence",), GRACE_PERIODS),
                       Stage(f["last_resort"]))
-        return cls(tuple(monitors), stages)
+        return cls(tuple(monitors), stages, select=None)  # flat runs always started the policy
 
     def describe(self) -> str:
         out = ""
@@ -348,7 +382,7 @@ class SupervisorSpec:
                       if stage.grace_periods else "")
             out += (f"{who} takes over once {judged}" if i == 0 else
                     f"; {who} takes over once, in {stage.controller}'s loop{settle}, {judged}")
-        return out
+        return out + ("" if self.select is None else "; " + self.select.describe())
 
 
 def _monitors(value: Any) -> tuple[Monitor, ...]:
@@ -370,6 +404,19 @@ def _monitors(value: Any) -> tuple[Monitor, ...]:
         check_keys(f"supervisor.monitors.{name}", fields, keys)
         out[name] = MONITORS[name](**fields)
     return tuple(out.values())
+
+
+def _selection(value: Any) -> Selection | None:
+    """A config's ``supervisor.select``: null (the policy always starts) or a mapping of the
+    fields that differ from ``Selection``'s defaults (omitted: the defaults)."""
+    if value is None:
+        return None
+    keys = [f.name for f in dataclasses.fields(Selection)]
+    if not isinstance(value, dict):
+        raise ValueError(f"supervisor.select={value!r} must be null or a mapping with keys "
+                         f"among {keys}")
+    check_keys("supervisor.select", value, keys)
+    return Selection(**value)
 
 
 def _stages(value: Any) -> tuple[Stage, ...]:
@@ -406,8 +453,9 @@ class MonitorState:
     actions: np.ndarray  # (n, 2, N) the policy's last N actions (extensor, flexor), likewise
 
     @classmethod
-    def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int) -> MonitorState:
-        return cls(np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
+    def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int, start: int = 0
+              ) -> MonitorState:
+        return cls(np.full(n, start, dtype=np.int64), np.zeros(n, dtype=np.int64),
                    np.zeros(n, dtype=np.int64), {m.name: np.zeros(n) for m in monitors},
                    np.zeros((n, n_period)), np.zeros((n, 2, n_period)))
 
@@ -416,11 +464,11 @@ class MonitorState:
                             {k: v.copy() for k, v in self.mean_sq.items()},
                             self.errors.copy(), self.actions.copy())
 
-    def restart(self, rows: np.ndarray) -> None:
-        """A new episode on ``rows``: everything from zero."""
-        for a in (self.stage, self.step, self.since, *self.mean_sq.values(), self.errors,
-                  self.actions):
+    def restart(self, rows: np.ndarray, start: int = 0) -> None:
+        """A new episode on ``rows``: everything from zero, the stage ``start``."""
+        for a in (self.step, self.since, *self.mean_sq.values(), self.errors, self.actions):
             a[rows] = 0
+        self.stage[rows] = start
 
 
 class SupervisedState(NamedTuple):
@@ -454,6 +502,20 @@ class Supervised:
         self.judges = np.array([[m.name in s.monitors for m in spec.monitors]
                                 for s in spec.stages], dtype=bool).reshape(len(spec.stages), -1)
         self.grace_steps = np.array([s.grace_periods * N for s in spec.stages])
+        # the stage every episode starts at, and what it was chosen on: ``spec.select``'s
+        # choice, made by mpa_gym.agents.evaluation.select.choose_starts (``POLICY``: not made)
+        self.start, self.predicted_mm = POLICY, None
+
+    def choose(self, predicted_mm: list[float]) -> int:
+        """Start every episode at the stage ``spec.select`` chooses from each stage's predicted
+        position RMSE [mm] on the model (``Selection.start``); the policy without a select."""
+        if len(predicted_mm) != len(self.spec.stages):
+            raise ValueError(f"predicted_mm={predicted_mm!r}: one figure per stage "
+                             f"({len(self.spec.stages)})")
+        self.predicted_mm = [float(v) for v in predicted_mm]
+        self.start = POLICY if self.spec.select is None else self.spec.select.start(
+            self.predicted_mm)
+        return self.start
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -464,10 +526,10 @@ class Supervised:
         n, N, later = rows.shape[0], self.n_period, len(self.controllers)
         if state is None:
             state = SupervisedState(None, (None,) * later, None)
-        mon = (MonitorState.zeros(n, self.spec.monitors, N) if state.monitor is None
-               else state.monitor.copy())
+        mon = (MonitorState.zeros(n, self.spec.monitors, N, self.start)
+               if state.monitor is None else state.monitor.copy())
         if episode_start is not None:
-            mon.restart(np.asarray(episode_start, dtype=bool).reshape(-1))
+            mon.restart(np.asarray(episode_start, dtype=bool).reshape(-1), self.start)
         before, k, r = mon.stage.copy(), mon.step.copy(), np.arange(n)
         e = rows[:, OXR] - rows[:, OX]
         slot = k % N
@@ -497,15 +559,20 @@ class Supervised:
             if not at.any():
                 continue
             st = states[s - 1]
-            fresh = at & (before < s) if st is not None else at  # rows it takes over
+            # rows it takes over: those that reached its stage this step, those whose episode
+            # starts at it (from rest: chosen on the model) and every row of its first call
+            rest = at & (before >= s) & (k == 0)
+            fresh = at & (before < s) | rest if st is not None else at
             take_over = getattr(ctrl, "take_over", None) if s == FALLBACK else None
-            if take_over is None:  # from its rest state
+            if take_over is None or rest.all():  # from its rest state
                 b, st = ctrl.predict(observation, st, fresh[0] if single else fresh,
                                      deterministic)
             else:  # bumpless: from the command the policy held
-                st = (take_over(rows, self.held(mon), st, fresh, history=self.history(mon))
-                      if fresh.any() else st)
-                b, st = ctrl.predict(observation, st, None, deterministic)
+                handed = fresh & ~rest
+                st = (take_over(rows, self.held(mon), st, handed, history=self.history(mon))
+                      if handed.any() else st)
+                b, st = ctrl.predict(observation, st, (rest[0] if single else rest)
+                                     if rest.any() else None, deterministic)
             states[s - 1] = st
             out = np.where(at[:, None], np.atleast_2d(b), out)
         out = out.astype(np.float32)
@@ -561,10 +628,22 @@ def policy_share(stages: np.ndarray | None) -> float:
     return float(np.mean(np.asarray(stages) == POLICY))
 
 
-def who_drove(t: np.ndarray, stages: np.ndarray | None) -> dict[str, float | None]:
+def who_drove(t: np.ndarray, stages: np.ndarray | None, start: int = POLICY
+              ) -> dict[str, Any]:
     """What every report row and sweep cell says of who drove one episode: ``fallback_s`` and
-    ``last_resort_s`` (``take_over_times``) and ``policy_share`` (:func:`policy_share`)."""
-    return {**take_over_times(t, stages), "policy_share": policy_share(stages)}
+    ``last_resort_s`` (``take_over_times``), ``policy_share`` (:func:`policy_share`) and
+    ``chosen``: the stage the episode started at (``Supervised.start``), ``"fallback"`` or
+    ``"last_resort"`` where it was chosen on the model before the episode rather than handed
+    the loop by a monitor, None where the policy started."""
+    return {**take_over_times(t, stages), "policy_share": policy_share(stages),
+            "chosen": None if start == POLICY else next(
+                key for key, stage in HAND_OVERS if stage == start).removesuffix("_s")}
+
+
+def handed_over(row: dict[str, Any]) -> bool:
+    """Whether a monitor handed the row's loop from the policy to a fallback (not a fallback
+    chosen on the model before the episode: :func:`who_drove`'s ``chosen``)."""
+    return row.get("fallback_s") is not None and row.get("chosen") is None
 
 
 def hand_overs(row: dict[str, Any], stages: list[str] | None = None) -> str:
@@ -572,8 +651,13 @@ def hand_overs(row: dict[str, Any], stages: list[str] | None = None) -> str:
     the policy, e.g. ``pid from 9.5 s, afc from 12.0 s; policy 79 % of steps`` (``stages``: the
     supervisor's controllers in cascade order; without them ``fallback`` / ``last_resort``);
     ``""`` where nothing took over."""
-    took = [f"{stages[i] if stages else key.removesuffix('_s')} from {row[key]:.1f} s"
-            for key, i in HAND_OVERS if row.get(key) is not None]
+    took, first = [], row.get("chosen")
+    for key, i in HAND_OVERS:
+        name = stages[i] if stages else key.removesuffix("_s")
+        if first == key.removesuffix("_s"):
+            took.append(f"{name} chosen on the model")
+        elif row.get(key) is not None and not (first == "last_resort" and i == FALLBACK):
+            took.append(f"{name} from {row[key]:.1f} s")
     if not took:
         return ""
     return ", ".join(took) + f"; policy {row.get('policy_share', 1.0) * 100:.0f} % of steps"

@@ -77,7 +77,9 @@ class Calibration:
         return {"monitors": {m.name: dataclasses.asdict(m) for m in self.spec.monitors},
                 "stages": [{"controller": s.controller, "monitors": list(s.monitors),
                             **({"grace_periods": s.grace_periods} if s.grace_periods else {})}
-                           for s in self.spec.stages]}
+                           for s in self.spec.stages],
+                "select": (None if self.spec.select is None
+                           else dataclasses.asdict(self.spec.select))}
 
     def as_dict(self) -> dict[str, Any]:
         return {**self.section(),
@@ -180,7 +182,7 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
         stages.append(Stage(order[1][0]))
     else:
         stages[-1] = Stage(first)
-    spec = SupervisorSpec(tuple(monitors), tuple(stages))
+    spec = SupervisorSpec(tuple(monitors), tuple(stages), select=current.select)
     return Calibration(spec, order, int(where.sum()), int(keep.sum()), n_plants, peaks,
                        dropped)
 

@@ -28,10 +28,13 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.supervisor import took_over, who_drove
-from mpa_gym.analysis.simulate import metric_window
+from mpa_gym.analysis.simulate import METRIC_PERIODS, metric_window, whole_periods
 from mpa_gym.task.contract import SAFETY_CLIPPED
 
 RECOVERY_BAND_M = 1e-3  # [m] recovered: |X − X̂| stays below this
+# [mm] a loop is unstable when the RMS of its error less the error's mean period over the
+# metric window passes this (5 % of the reference's 20 mm amplitude; cell_metrics)
+UNSTABLE_APERIODIC_MM = 1.0
 # the per-step info fields a Trace keeps: Trace field -> info key
 _RECORDED = {"t": "t_s", "x": "x_m", "x_ref": "x_ref_m", "k": "k_N_per_m",
              "k_ref": "k_ref_N_per_m", "pressure_bar": "pressure_bar",
@@ -73,6 +76,7 @@ class Trace:
     rewards: np.ndarray
     terminated: bool
     fallback: np.ndarray | None = None  # per step, a supervisor's stage (``took_over``)
+    start: int = 0  # the stage a supervisor started at (``Supervised.start``: chosen on a model)
 
 
 @dataclass
@@ -205,8 +209,48 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
                            c["k"].astype(float), c["k_ref"].astype(float), c["pressure_bar"],
                            c["pressure_cmd_bar"], (c["safety"] & SAFETY_CLIPPED) > 0,
                            rew[:m, r], bool(terminated[i]),
-                           all_stages[:m, i].astype(np.int64) if supervised[i] else None)
+                           all_stages[:m, i].astype(np.int64) if supervised[i] else None,
+                           getattr(jobs[i].policy, "start", 0) if supervised[i] else 0)
     return out
+
+
+def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list[dict[str, Any]]:
+    """The robustness sweep's metrics (``mpa_gym.agents.evaluation.robustness``' docstring) for
+    each leg of ``run_batch``'s output: position and aperiodic RMSE over the last three
+    reference periods, ``unstable``, ``terminated`` and who drove."""
+    per = round(period_s / dt)
+    e = run["x"] - run["x_ref"]
+    out = []
+    for i in range(e.shape[1]):
+        n = int(run["steps"][i]) if "steps" in run else len(run["t"])  # the leg's own steps
+        took = who_drove(run["t"][:n], run["fallback"][:n, i] if "fallback" in run else None,
+                         int(run["start"][i]) if "start" in run else 0)
+        if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
+            out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
+                        "terminated": bool(run["terminated"][i]), **took})
+            continue
+        w = e[whole_periods(run["t"], period_s), i].reshape(METRIC_PERIODS, per)
+        rem = w - w.mean(axis=0)
+        ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
+        out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
+                    "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
+                    "terminated": False, **took})
+    return out
+
+
+def trace_metrics(tr: Trace, period_s: float) -> dict[str, Any]:
+    """:func:`cell_metrics` of one episode's trace."""
+    run = {"t": tr.t, "x": tr.x[:, None], "x_ref": tr.x_ref[:, None],
+           "terminated": np.array([tr.terminated]), "steps": np.array([len(tr.t)]),
+           "fallback": (np.zeros((len(tr.t), 1), dtype=np.int8) if tr.fallback is None
+                        else tr.fallback[:, None]), "start": np.array([tr.start])}
+    return cell_metrics(run, period_s, float(tr.t[0]))[0]
+
+
+def score_mm(m: dict[str, Any]) -> float:
+    """[mm] a cell's position RMSE; inf where the loop was unstable or terminated."""
+    v = m.get("position_rmse_mm")
+    return math.inf if m.get("unstable") or m.get("terminated") or v is None else float(v)
 
 
 def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[str, Any]:
@@ -222,5 +266,5 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
         "recovery_s": None if impulse_end_s is None else recovery_s(trace.t, e, impulse_end_s),
         "return": float(trace.rewards.sum()),
         "terminated": trace.terminated,
-        **who_drove(trace.t, trace.fallback),
+        **who_drove(trace.t, trace.fallback, trace.start),
     }

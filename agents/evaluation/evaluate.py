@@ -16,7 +16,11 @@ window `mpa-gym simulate` uses) unless said otherwise:
   ``last_resort_s`` the time its last resort did;
 - ``policy_share``: the share of the episode's steps the learned policy drove (its supervisor's
   stage was the policy's); 1.0 where nothing took over, so for every baseline and every
-  unsupervised policy.
+  unsupervised policy;
+- ``chosen``: ``"fallback"`` or ``"last_resort"`` where the supervisor started the episode at
+  that stage, chosen on the scenario's model before it (``supervisor.select``,
+  ``mpa_gym.agents.evaluation.select``; its ``fallback_s`` is then the first step's time), None
+  where the policy started.
 
 Who produced a figure is always said. A run folder whose config has a supervisor is evaluated
 twice (``mpa_gym.agents.learned.policies.with_alone``): as given, the supervised system (its
@@ -79,10 +83,12 @@ from mpa_gym.agents.evaluation.seeds import (
     plot_curves,
     require_stats,
 )
+from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     ALONE_LABEL,
     builds_per_scenario,
+    has_supervisor,
     is_user_spec,
     load_policy,
     loads_per_scenario,
@@ -132,6 +138,10 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     # plan; batched, one stack of them per baseline
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
            for spec in policies if loads_per_scenario(spec)}
+    # a supervisor's start on each scenario, chosen on its model (select.choose_starts)
+    supervised = [spec for spec in own if has_supervisor(spec)]
+    choose_starts([p for spec in supervised for p in own[spec]],
+                  [sc for _ in supervised for sc in loaded], [None] * len(supervised) * len(loaded))
     stacked = {spec: st for spec, ps in own.items()
                if (st := _stacked([p for p, _, _ in ps])) is not None} if batched else {}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
@@ -376,6 +386,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
                 "kind": kinds.get(labels[0], "controller"), "n_runs": len(labels),
                 "episodes": len(per), "terminated": sum(bool(m["terminated"]) for m in per),
                 "fallback_episodes": sum(m.get("fallback_s") is not None for m in per),
+                "chosen_episodes": sum(m.get("chosen") is not None for m in per),
                 "policy_share": float(np.mean([m.get("policy_share", 1.0) for m in per]))}
             for metric in metrics:
                 j = columns.index((key, metric))
@@ -399,13 +410,15 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
 
 
 def who_drove_text(entry: dict[str, Any]) -> str:
-    """A summary row's who-drove cell, e.g. ``supervised (policy + fallback) ‡: a fallback took
-    over in 2 of 8 episodes; the policy drove 91 % of steps``."""
+    """A summary row's who-drove cell, e.g. ``supervised (policy + fallback) ‡: a fallback
+    drove in 2 of 8 episodes (chosen on the model in 1); the policy drove 72 % of steps``."""
     text = KINDS.get(entry["kind"], entry["kind"])
     if entry["fallback_episodes"]:
-        text += (f" ‡: a fallback took over in {entry['fallback_episodes']} of "
-                 f"{entry['episodes']} episodes; the policy drove "
-                 f"{entry['policy_share'] * 100:.0f} % of steps")
+        chosen = entry.get("chosen_episodes") or 0
+        text += (f" ‡: a fallback drove in {entry['fallback_episodes']} of "
+                 f"{entry['episodes']} episodes"
+                 + (f" (chosen on the model in {chosen})" if chosen else "")
+                 + f"; the policy drove {entry['policy_share'] * 100:.0f} % of steps")
     elif entry["kind"] == "supervised":
         text += ": the policy drove every step"
     if entry["n_runs"] > 1:
@@ -701,6 +714,8 @@ def hand_over_lines(report: dict[str, Any]) -> list[str]:
         n_cells = len(g["rows"]["values"]) * len(g["cols"]["values"])
         lines += [f"{c} on grid {name}: {n} of {n_cells} cells"
                   for c, n in (g.get("hand_overs") or {}).items() if n]
+        lines += [f"{c} on grid {name}: a fallback chosen on the model on {n} of {n_cells} "
+                  "cells" for c, n in (g.get("chosen") or {}).items() if n]
     return lines
 
 

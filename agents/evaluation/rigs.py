@@ -17,7 +17,10 @@ The audit, for each learned run (``ratio`` = ``RIG_RATIO``, every bound raised t
   the better of the policy alone and the best classical baseline evaluated (``CLASSICAL``), the
   rigs that break it listed: a supervisor that hands a good loop to a worse fallback shows
   here, and so does one that keeps a failing policy;
-- ``hand_overs``: the rigs on which the supervisor's fallback took over.
+- ``hand_overs``: the rigs on which a monitor handed the loop to the supervisor's fallback;
+- ``chosen``: the rigs on which a fallback drove from the start, chosen on the rig's model
+  (``mpa_gym.agents.evaluation.select``; the model is the rig's plant, as ``mpa-gym identify``
+  would write it, as the delays a policy is told are).
 """
 
 from __future__ import annotations
@@ -29,8 +32,10 @@ from typing import Any
 import numpy as np
 
 from mpa_gym.agents.controllers.gains import Gains
-from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes
-from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, cell_metrics
+from mpa_gym.agents.controllers.supervisor import handed_over
+from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, score_mm, trace_metrics
+from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
+from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     ALONE,
@@ -38,6 +43,7 @@ from mpa_gym.agents.learned.policies import (
     load_for_plant,
     load_policy,
     loads_per_scenario,
+    selects,
     spec_label,
     with_alone,
 )
@@ -77,25 +83,25 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     # a supervised run is loaded for each rig (its monitors and fallbacks follow the rig's
     # reference period), a policy that observes delays told the rig's (loads_per_scenario)
     learned = {p: load_policy(p) for p in policies if not loads_per_scenario(p)}
-    jobs = []
+    jobs, chosen = [], []
     for i, (sc, (_, plant)) in enumerate(zip(scenarios, rigs, strict=True)):
         for p in policies:
-            policy, env_id, cfg = learned[p] if p in learned else load_for_plant(
-                p, sc, plant, gains)
+            one = learned[p] if p in learned else load_for_plant(p, sc, plant, gains)
+            if selects(p):
+                chosen.append((one, sc, plant))
+            policy, env_id, cfg = one
             jobs.append(Job(sc, policy, env_id, eval_task(cfg), plant=plant,
                             seed=episode_seed + i))
+    # a supervisor's start, chosen on each rig's model (its plant, as identify would write it)
+    if chosen:
+        choose_starts([c[0] for c in chosen], [c[1] for c in chosen], [c[2] for c in chosen])
     traces = run_episodes(jobs, episode_seed)
     labels = [spec_label(p) for p in policies]
     per_rig = []
     for i, (period, plant) in enumerate(rigs):
         row = {}
         for k, label in enumerate(labels):
-            tr = traces[i * len(policies) + k]
-            run = {"t": tr.t, "x": tr.x[:, None], "x_ref": tr.x_ref[:, None],
-                   "terminated": np.array([tr.terminated]), "steps": np.array([len(tr.t)]),
-                   "fallback": (np.zeros((len(tr.t), 1), dtype=np.int8) if tr.fallback is None
-                                else tr.fallback[:, None])}
-            row[label] = cell_metrics(run, period, float(tr.t[0]))[0]
+            row[label] = trace_metrics(traces[i * len(policies) + k], period)
         per_rig.append({"rig": i, "period_s": period, "plant": plant, "controllers": row})
     out: dict[str, Any] = {"n": n, "seed": seed, "episode_seed": episode_seed,
                            "file": RIGS_FILE.name, "period_s": list(PERIOD_S),
@@ -109,14 +115,8 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     return out
 
 
-def score(m: dict[str, Any]) -> float:
-    """[mm] a rig's position RMSE; inf where the loop was unstable or terminated."""
-    v = m.get("position_rmse_mm")
-    return math.inf if m.get("unstable") or m.get("terminated") or v is None else float(v)
-
-
 def _median(ms: list[dict[str, Any]]) -> float | None:
-    v = float(np.median([score(m) for m in ms]))
+    v = float(np.median([score_mm(m) for m in ms]))
     return None if math.isinf(v) else v
 
 
@@ -127,22 +127,24 @@ def _within(x: float, ref: float) -> bool:
 def _audit(per_rig: list[dict[str, Any]], supervised: str, alone: str, labels: list[str]
            ) -> dict[str, Any]:
     classical = [c for c in CLASSICAL if c in labels]
-    broken, near_pid, hand_overs = [], 0, []
+    broken, near_pid, hand_overs, chosen = [], 0, [], []
     for r in per_rig:
         c = r["controllers"]
-        best = min([score(c[alone])] + [score(c[b]) for b in classical])
-        if not _within(score(c[supervised]), best):
-            broken.append({"rig": r["rig"], "supervised_mm": _finite(score(c[supervised])),
-                           "alone_mm": _finite(score(c[alone])), "best_mm": _finite(best)})
+        best = min([score_mm(c[alone])] + [score_mm(c[b]) for b in classical])
+        if not _within(score_mm(c[supervised]), best):
+            broken.append({"rig": r["rig"], "supervised_mm": _finite(score_mm(c[supervised])),
+                           "alone_mm": _finite(score_mm(c[alone])), "best_mm": _finite(best)})
         if "pid" in c:
-            near_pid += _within(score(c[alone]), score(c["pid"]))
-        if c[supervised].get("fallback_s") is not None:
+            near_pid += _within(score_mm(c[alone]), score_mm(c["pid"]))
+        if handed_over(c[supervised]):
             hand_overs.append(r["rig"])
+        if c[supervised].get("chosen") is not None:
+            chosen.append(r["rig"])
     n = len(per_rig)
     return {"alone": alone, "classical": classical,
             "alone_within_pid": near_pid / n if "pid" in labels else None,
             "supervised_within": (n - len(broken)) / n, "broken": broken,
-            "hand_overs": hand_overs}
+            "hand_overs": hand_overs, "chosen": chosen}
 
 
 def _finite(v: float) -> float | None:
@@ -168,7 +170,9 @@ def markdown(rr: dict[str, Any]) -> list[str]:
                    f"{a['supervised_within']:.0%} of the rigs{pid}; hand-overs on "
                    f"{len(a['hand_overs'])} rigs"
                    + (f" (rigs {', '.join(map(str, a['hand_overs']))})" if a["hand_overs"]
-                      else "") + ".")
+                      else "")
+                   + (f"; a fallback chosen on the rig's model drove rigs "
+                      f"{', '.join(map(str, a['chosen']))}" if a.get("chosen") else "") + ".")
     out += ["", "| | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels),
             "| median | " + " | ".join(_mm(rr["median_mm"][lab]) for lab in labels) + " |",
             "| unstable | " + " | ".join(str(rr["unstable"][lab]) for lab in labels) + " |", "",
@@ -181,8 +185,9 @@ def markdown(rr: dict[str, Any]) -> list[str]:
             m = r["controllers"][lab]
             cell = ("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
                     + (" **unstable**" if m["unstable"] else ""))
-            cells.append(cell + (f" ‡{m['fallback_s']:.1f} s" if m.get("fallback_s") is not None
-                                 else ""))
+            cells.append(cell + ("" if m.get("fallback_s") is None else
+                                 f" ‡{m['chosen'].replace('_', ' ')} chosen"
+                                 if m.get("chosen") else f" ‡{m['fallback_s']:.1f} s"))
         out.append(f"| {r['rig']} | {r['period_s']:.2f} | {plant} | " + " | ".join(cells) + " |")
     return [*out, ""]
 

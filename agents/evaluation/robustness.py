@@ -46,27 +46,28 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.gains import Gains
-from mpa_gym.agents.controllers.supervisor import who_drove
+from mpa_gym.agents.controllers.supervisor import handed_over
 from mpa_gym.agents.evaluation.episodes import (
+    UNSTABLE_APERIODIC_MM,
     Job,
+    cell_metrics,
     eval_task,
     recovery_s,
     run_episodes,
 )
+from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     has_supervisor,
     load_for_plant,
     load_policy,
     run_of,
+    selects,
     spec_label,
     tells_delays,
     with_alone,
 )
 from mpa_gym.analysis.scenario import Impulse, Plant, Randomization, Scenario, load_scenario
-from mpa_gym.analysis.simulate import METRIC_PERIODS, whole_periods
-
-UNSTABLE_APERIODIC_MM = 1.0
 
 
 @dataclass(frozen=True)
@@ -145,8 +146,13 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
     """One episode of ``spec`` (a name, or a controller object) on ``sc`` per plant, plant j's
     reset with seed ``seed + j``; one controller object for all of them (a batch), except a
     policy that observes the rig's delays, which is told each plant's
-    (``policies.load_for_plant``: one object for the plants of equal delays)."""
-    if isinstance(spec, str) and tells_delays(spec):  # one object per pair of delays told
+    (``policies.load_for_plant``: one object for the plants of equal delays), and a supervised
+    run whose start is chosen on the model (``policies.selects``): one object per plant, its
+    start chosen on that plant (``select.choose_starts``)."""
+    if isinstance(spec, str) and selects(spec):
+        loaded = [load_for_plant(spec, sc, p, gains) for p in plants]
+        choose_starts(loaded, [sc] * len(plants), plants)
+    elif isinstance(spec, str) and tells_delays(spec):  # one object per pair of delays told
         told: dict[tuple[Any, Any], tuple[Policy, str, Any]] = {}
         loaded = []
         for p in plants:
@@ -186,28 +192,8 @@ def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, 
                 fb[:len(tr.t), j] = tr.fallback
         out.append({"t": dt * np.arange(1, steps + 1), "x": x, "x_ref": xr,
                     "terminated": np.array([tr.terminated for tr in mine]), "fallback": fb,
-                    "steps": np.array([len(tr.t) for tr in mine])})
-    return out
-
-
-def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list[dict[str, Any]]:
-    """The module docstring's metrics for each leg of ``run_batch``'s output."""
-    per = round(period_s / dt)
-    e = run["x"] - run["x_ref"]
-    out = []
-    for i in range(e.shape[1]):
-        n = int(run["steps"][i]) if "steps" in run else len(run["t"])  # the leg's own steps
-        took = who_drove(run["t"][:n], run["fallback"][:n, i] if "fallback" in run else None)
-        if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
-            out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
-                        "terminated": bool(run["terminated"][i]), **took})
-            continue
-        w = e[whole_periods(run["t"], period_s), i].reshape(METRIC_PERIODS, per)
-        rem = w - w.mean(axis=0)
-        ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
-        out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
-                    "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
-                    "terminated": False, **took})
+                    "steps": np.array([len(tr.t) for tr in mine]),
+                    "start": np.array([tr.start for tr in mine])})
     return out
 
 
@@ -272,9 +258,10 @@ def robustness(policies: list[str], scenario: Any = "nominal", seed: int = EVAL_
             nc = len(g.col_values)
             entry["controllers"][labels[p]] = [m[r * nc:(r + 1) * nc]
                                                for r in range(len(g.row_values))]
-            if has_supervisor(p):  # the count of hand-overs per grid, for the report
-                entry.setdefault("hand_overs", {})[labels[p]] = sum(
-                    c["fallback_s"] is not None for c in m)
+            if has_supervisor(p):  # the counts of hand-overs and starts chosen, for the report
+                entry.setdefault("hand_overs", {})[labels[p]] = sum(map(handed_over, m))
+                entry.setdefault("chosen", {})[labels[p]] = sum(
+                    c["chosen"] is not None for c in m)
         out["grids"][g.name] = entry
     out["levels_kick"] = dataclasses.asdict(kick)
     for key, plants_by_name, rig in (("levels", levels, LEVEL_RIG), ("kicks", kicks, {})):
@@ -356,8 +343,10 @@ def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[s
 
 
 def _cell(m: dict[str, Any]) -> str:
-    fb, lr = m.get("fallback_s"), m.get("last_resort_s")
-    took = ("" if fb is None else f" ‡{fb:.1f} s") + ("" if lr is None else f" §{lr:.1f} s")
+    fb, lr, first = m.get("fallback_s"), m.get("last_resort_s"), m.get("chosen")
+    took = ("" if fb is None or first == "last_resort" else
+            " ‡chosen" if first == "fallback" else f" ‡{fb:.1f} s") + (
+        "" if lr is None else " §chosen" if first == "last_resort" else f" §{lr:.1f} s")
     if fb is not None and m.get("policy_share") is not None:
         took += f" (policy {m['policy_share'] * 100:.0f} %)"
     if m["terminated"]:
@@ -374,7 +363,8 @@ def markdown(rob: dict[str, Any]) -> list[str]:
            f"with the reference's period exceeds {rob['unstable_aperiodic_mm']:g} mm RMS (a "
            "limit cycle or a divergence); terminated: the leg left its bounds. A learned "
            "controller's cells outside its training ranges are marked †; ‡t s: its "
-           "supervisor's fallback took over at t s, §t s: its last resort did, (policy p %): "
+           "supervisor's fallback took over at t s, §t s: its last resort did (‡chosen, "
+           "§chosen: it drove from the start, chosen on the model), (policy p %): "
            "the share of steps the learned policy drove (the figure is the supervised "
            "loop's); `(alone)`: the same run without its supervisor, the policy's own "
            "figures.", ""]
@@ -384,9 +374,10 @@ def markdown(rob: dict[str, Any]) -> list[str]:
                 f"{g['base'] or 'nothing else'} per leg and {g['rig'] or 'nothing'} rig-wide.",
                 ""]
         for ctrl, rows in g["controllers"].items():
-            n = g.get("hand_overs", {}).get(ctrl)
+            n, c = g.get("hand_overs", {}).get(ctrl), g.get("chosen", {}).get(ctrl)
             count = ("" if n is None else
-                     f" (its supervisor handed over on {n} of {sum(map(len, rows))} cells)")
+                     f" (its supervisor handed over on {n} of {sum(map(len, rows))} cells"
+                     + (f"; a fallback chosen on the model drove {c}" if c else "") + ")")
             out += [f"**{ctrl}**{count}", "", f"| {rf} \\ {cf} | "
                     + " | ".join(f"{v:g}" for v in g["cols"]["values"]) + " |",
                     "|---|" + "---|" * len(g["cols"]["values"])]

@@ -73,6 +73,13 @@ def has_supervisor(spec: str) -> bool:
             and read_run_config(run).supervisor is not None)
 
 
+def selects(spec: str) -> bool:
+    """Whether ``spec`` is a supervised run folder whose supervisor chooses the stage it starts
+    at on the model (``supervisor.select``; ``mpa_gym.agents.evaluation.select``): it is loaded
+    for each plant it runs on."""
+    return has_supervisor(spec) and read_run_config(run_of(spec)[0]).supervisor.select is not None
+
+
 def with_alone(specs: list[str]) -> list[str]:
     """``specs`` with ``RUN_DIR:alone`` after every supervised run folder (one whose config has
     a ``supervisor``) that is not already followed by it: every report shows the policy alone
@@ -105,7 +112,8 @@ def loads_per_scenario(spec: str) -> bool:
     each scenario's plan (:func:`builds_per_scenario`), a supervised run, whose supervisor
     judges its loop over the scenario's reference period and hands it to fallbacks built for
     the scenario's plan (:func:`supervise`), and a policy told the rig's delays
-    (:func:`tells_delays`: the scenario's plant's). The run's model is read once either way
+    (:func:`tells_delays`: the scenario's plant's), and a supervisor that chooses its start
+    on the plant (:func:`selects`). The run's model is read once either way
     (:func:`load_run`); any other run's policy is loaded once and serves every scenario."""
     return builds_per_scenario(spec) or has_supervisor(spec) or tells_delays(spec)
 

@@ -44,6 +44,7 @@ from mpa_gym.agents.controllers.supervisor import (
     took_over,
 )
 from mpa_gym.agents.evaluation.episodes import Trace, metrics
+from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.policies import known_delays, load_policy
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.hardware.emulator import EmulatorProcess
@@ -198,6 +199,14 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                                           gains=gains, flag=flag)
     # a policy that observes the rig's delays is told the scenario's plant's (identify --out's)
     told = known_delays(policy)
+    # a supervisor that chooses its start does so on the scenario's plant (identify --out's),
+    # in simulation before the rig is touched, with the run's batch path (select.choose_starts)
+    predicted = None
+    if isinstance(policy, Supervised) and policy.spec.select is not None:
+        model = load_policy(policy_spec, {"scenario": scenario,
+                                          "task": {"dt_s": 1.0 / control_hz}}, gains=gains)
+        predicted = choose_starts([model], [scenario], [None])[0]
+        policy.choose(predicted)
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
@@ -218,6 +227,11 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                    .isoformat(timespec="seconds"), "pid": os.getpid(), "policy": policy_spec,
                    "scenario": env.plan.scenario.name, "control_hz": control_hz,
                    "episodes": episodes, "seed": seed, "told_delays_s": told})
+        if predicted is not None:  # the start chosen on the model, and on what figures
+            stages = [st.controller for st in run_cfg.supervisor.stages]
+            _write(f, {"event": "chosen", "start": stages[policy.start],
+                       "predicted_mm": dict(zip(stages, predicted, strict=True)),
+                       "supervisor": run_cfg.supervisor.describe()})
         try:
             pre = preflight(env)
             _write(f, {"event": "preflight", **pre})
@@ -226,7 +240,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                 state, start = None, np.array([True])
                 rows: list[dict[str, Any]] = []
                 # the supervisor's stage this episode (mpa_gym.agents.controllers.supervisor)
-                fell = POLICY
+                fell = policy.start if isinstance(policy, Supervised) else POLICY
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])
@@ -247,7 +261,8 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                         break
                     env.defer(record)
                 os.fsync(f.fileno())
-                results.append(_episode_metrics(rows, env))
+                results.append(_episode_metrics(
+                    rows, env, policy.start if isinstance(policy, Supervised) else POLICY))
                 if term:  # a safety stop: the rig is vented, the session ends here
                     stopped = f"episode {ep}: {info.get('fault', 'terminated')}"
                     _write(f, {"event": "stopped", "episode": ep, "fault": stopped})
@@ -272,6 +287,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             m["hand_overs"] = hand_overs(m, stages)
     out: dict[str, Any] = {
         "episodes": results, "log": str(log_path), "stages": stages, "told_delays_s": told,
+        "predicted_mm": None if predicted is None else dict(zip(stages, predicted, strict=True)),
         "scenario": env.plan.scenario.name,
         "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
                    "steps": len(env.timing["latency_s"]), "realtime": rt_report,
@@ -301,13 +317,14 @@ def _write(f: IO[str], rec: dict[str, Any]) -> None:
     os.fsync(f.fileno())
 
 
-def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv) -> dict[str, Any]:
+def _episode_metrics(rows: list[dict[str, Any]], env: HardwareLegEnv, start: int = POLICY
+                     ) -> dict[str, Any]:
     col = lambda k: np.array([r[k] for r in rows])  # noqa: E731
     tr = Trace(col("t_s"), col("x_m"), col("x_ref_m"), col("k_N_per_m"), col("k_ref_N_per_m"),
                col("pressure_bar"), col("pressure_cmd_bar"), (col("safety") & SAFETY_CLIPPED) > 0,
                col("reward"), bool(rows[-1]["terminated"]))
     if "fallback" in rows[0]:  # a supervised run: which steps its fallback drove
-        tr.fallback = col("fallback")
+        tr.fallback, tr.start = col("fallback"), start
     m = metrics(tr, env.plan.design.reference.period, None)
     if "fault" in rows[-1]:
         m["fault"] = rows[-1]["fault"]

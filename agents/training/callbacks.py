@@ -72,7 +72,9 @@ def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normali
     (``mpa_gym.agents.evaluation.episodes.run_episodes``). With a ``supervisor`` in the config
     the supervised policy runs beside it, and each scenario's metrics say when its fallback
     took over (``supervised_fallback_s``, None: it did not): the hand-over rate is a training
-    metric (``eval/hand_over_rate``)."""
+    metric (``eval/hand_over_rate``). The policy starts every one of these episodes (no start
+    is chosen on the model, ``mpa_gym.agents.evaluation.select``): the rate is that of the
+    monitors firing on the policy's own loop."""
     policy = LearnedPolicy.from_config(model, normalizer, cfg)
     told = policy.features is not None and policy.features.delay_observation
     # one policy for all the scenarios (a batch), or one each told its plant's delays

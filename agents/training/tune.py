@@ -25,7 +25,9 @@ as PostgreSQL, or a journal file on a shared disk).
   each the mean over :data:`mpa_gym.agents.evaluation.evaluate.HELDOUT_SCENARIOS` (30 s episodes,
   the report's episode seed) and over the trial's seeds (``--seeds-per-trial``), of the policy
   alone, without its config's supervisor (:func:`make_objective` says why); the user attribute
-  ``hand_overs`` counts the held-out episodes in which the supervised run's fallback took over.
+  ``hand_overs`` counts the held-out episodes in which a monitor of the supervised run handed its
+  loop to the fallback (a fallback its supervisor chose on the model before the episode is not
+  a hand-over: ``mpa_gym.agents.evaluation.select``).
   The Pareto front is the study's ``best_trials``. Wall-clock time [s] per trial is the user
   attribute ``wall_s``.
 - **Pruning**: Optuna prunes single-objective studies only (``Trial.report`` is not defined for
@@ -74,6 +76,7 @@ import yaml
 from optuna.exceptions import ExperimentalWarning
 from optuna.trial import TrialState
 
+from mpa_gym.agents.controllers.supervisor import handed_over
 from mpa_gym.agents.evaluation.evaluate import HELDOUT_SCENARIOS, evaluate
 from mpa_gym.agents.learned.config import (
     ACTION_WRAPPER,
@@ -428,8 +431,7 @@ def make_objective(study: optuna.Study, data: dict[str, Any], objective: str, se
                 "stiffness_err_pct": _mean([r[scored]["stiffness_rmse_pct"]
                                             for r in res.values()]),
                 "hand_overs": (None if cfg.supervisor is None else
-                               sum(r[run_dir.name]["fallback_s"] is not None
-                                   for r in res.values()))})
+                               sum(handed_over(r[run_dir.name]) for r in res.values()))})
         agg = {k: _mean([p[k] for p in per_seed]) for k in OBJECTIVES["both"]}
         trial.set_user_attr("wall_s", time.perf_counter() - t0)
         trial.set_user_attr("per_seed", per_seed)

@@ -1,0 +1,77 @@
+"""The supervisor's start, chosen on the model (``SupervisorSpec.select``,
+``mpa_gym.agents.controllers.supervisor.Selection``).
+
+A supervisor whose monitors fire only on instability keeps a policy that tracks stably but
+worse than its fallback would (a light leg with a long regulator lag, where rc tracks 1.2-2x
+better), and hands over too late where the policy is unstable from the start (a fallback
+handed an oscillating loop in the middle of an episode still settles when the report scores
+it). What the fallback is expected to do is known before the episode, on the model: each
+stage's controller alone runs one episode on the scenario with the plant the supervised
+policy was loaded for (a report's scenario, a sweep cell, a random rig; on a rig, the
+scenario ``mpa-gym identify --out`` wrote, whose plant is the estimate), without the
+scenario's disturbances (the model does not know the kicks to come) and its randomisation,
+its sensor noise drawn from ``MODEL_SEED`` (no report's episode seed). Each is scored as the
+sweep scores a cell (``cell_metrics``: position RMSE over the last three reference periods; an
+unstable or terminated loop is infinitely bad) and ``Supervised.choose`` sets the stage every
+episode starts at. The episodes of every policy given run as one batch.
+
+What was chosen is never hidden: each report row says ``chosen`` (``who_drove``) and its
+``policy_share``, and a run's ``predicted_mm`` are kept on the policy object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from mpa_gym.agents.controllers.supervisor import Supervised
+from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, score_mm, trace_metrics
+from mpa_gym.agents.learned.config import EVAL_SEED
+from mpa_gym.analysis.scenario import Randomization, Scenario, load_scenario
+
+MODEL_SEED = 4 * EVAL_SEED  # the model episodes' noise: beyond training, evaluation and rigs
+
+
+def model_of(scenario: Any) -> Scenario:
+    """The model a start is chosen on: ``scenario`` without its disturbances and its
+    randomisation (its plant, noise and reference kept)."""
+    sc = load_scenario(scenario)
+    return dataclasses.replace(sc, name=f"{sc.name} (model)", disturbances=(),
+                               randomize=Randomization())
+
+
+def choose_starts(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
+                  plants: list[dict[str, Any] | None]) -> list[list[float] | None]:
+    """For each ``loaded[i]`` (``load_policy``'s (policy, env id, run config)) run on
+    ``scenarios[i]`` with ``plants[i]``'s fields: a supervised policy whose spec selects
+    (``spec.select``) gets its start chosen (``Supervised.choose``) on the model of that
+    scenario and plant; returns each one's predicted RMSE per stage [mm] (inf: unstable), None
+    for a policy that chooses nothing. A policy object given twice is chosen for once, on its
+    first scenario and plant (give a supervised policy of its own to each plant)."""
+    if not len(loaded) == len(scenarios) == len(plants):
+        raise ValueError(f"{len(loaded)} policies, {len(scenarios)} scenarios and "
+                         f"{len(plants)} plants: one of each per policy")
+    models: dict[int, Scenario] = {}  # id(scenario) -> its model (one env per scenario)
+    jobs, owners, first = [], [], {}
+    for i, ((policy, env_id, cfg), sc, plant) in enumerate(zip(loaded, scenarios, plants,
+                                                              strict=True)):
+        if (not isinstance(policy, Supervised) or policy.spec.select is None
+                or id(policy) in first):
+            continue
+        first[id(policy)] = i
+        model = models.setdefault(id(sc), model_of(sc))
+        task = eval_task(cfg)
+        for ctrl, eid in [(policy.policy, env_id)] + [(c, "MPALegResidual-v0")
+                                                     for c in policy.controllers]:
+            jobs.append(Job(model, ctrl, eid, task, plant=plant, seed=MODEL_SEED))
+            owners.append(i)
+    out: list[list[float] | None] = [None] * len(loaded)
+    if not jobs:
+        return out
+    for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
+        out[i] = (out[i] or []) + [score_mm(trace_metrics(
+            tr, load_scenario(scenarios[i]).reference.period))]
+    for i, predicted in enumerate(out):
+        if predicted is not None:
+            loaded[i][0].choose(predicted)
+    return out

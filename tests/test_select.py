@@ -1,0 +1,200 @@
+"""The supervisor's start, chosen on the model (``Selection``, agents/evaluation/select.py)."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from conftest import REALTIME, tiny_config
+
+import mpa_gym  # noqa: F401
+from mpa_gym.agents.cli import show_rollout
+from mpa_gym.agents.controllers.baselines import make_baseline
+from mpa_gym.agents.controllers.supervisor import (
+    FALLBACK,
+    LAST_RESORT,
+    POLICY,
+    Selection,
+    Supervised,
+    SupervisorSpec,
+    hand_overs,
+    handed_over,
+)
+from mpa_gym.agents.evaluation.episodes import (
+    Job,
+    eval_task,
+    run_episode,
+    run_episodes,
+    score_mm,
+    trace_metrics,
+)
+from mpa_gym.agents.evaluation.rigs import random_rigs
+from mpa_gym.agents.evaluation.robustness import Grid, _cell, _scenario, robustness
+from mpa_gym.agents.evaluation.select import MODEL_SEED, choose_starts, model_of
+from mpa_gym.agents.learned.policies import ALONE, load_policy
+from mpa_gym.agents.rig.rollout import read_log, rollout
+from mpa_gym.agents.training.train import train
+from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.hardware.emulator import EmulatorProcess
+
+INF = math.inf
+DT = 0.01
+# a rig none of the code's defaults describe: long regulator delays and a load
+SLOW = {"pressure_dead_time_s": 0.03, "pressure_lag_s": 0.04, "extra_mass_kg": 0.7}
+
+
+@pytest.mark.parametrize("predicted, start", [
+    ([0.50, 0.45, 0.90], POLICY),  # the fallback better, but within the ratio
+    ([1.20, 1.00], POLICY),  # exactly the ratio: not better by more than it
+    ([0.50, 0.41, 0.90], FALLBACK),  # 0.50 > 1.2 x 0.41
+    ([0.50, 0.41, 0.30], LAST_RESORT),  # the best of the later stages
+    ([0.50, 0.30, 0.30], FALLBACK),  # equals: the earlier
+    ([INF, INF, 2.0], LAST_RESORT),  # the policy and the fallback unstable on the model
+    ([INF, 3.0], FALLBACK),
+    ([INF, INF, INF], POLICY),  # nothing known better: the monitors judge the policy
+])
+def test_the_policy_starts_unless_a_later_stage_is_predicted_better_by_the_ratio(
+        predicted, start):
+    assert Selection(1.2).start(predicted) == start
+
+
+def test_a_start_needs_a_figure_per_stage():
+    with pytest.raises(ValueError, match=r"one figure per stage, at least two stages"):
+        Selection().start([0.5])
+    sup = Supervised(Wobbly(), make_baseline("rc"), DT, 3.0, SupervisorSpec(),
+                     make_baseline("pid"))
+    with pytest.raises(ValueError, match=r"one figure per stage \(3\)"):
+        sup.choose([0.5, 0.4])
+
+
+class Wobbly:
+    """A stand-in residual whose actions would show in the trace if it drove."""
+
+    def predict(self, observation, state=None, episode_start=None, deterministic=True):
+        o = np.atleast_2d(observation)
+        return (0.3 * np.tanh(o[:, :2] * 7.0)).astype(np.float32), state
+
+
+@pytest.mark.parametrize("start, alone", [(FALLBACK, "rc"), (LAST_RESORT, "pid")])
+def test_a_loop_started_at_a_fallback_drives_exactly_as_that_fallback_alone(start, alone):
+    # Identity: from the first step the chosen stage's controller drives from its rest
+    # state, so the supervised episode is the fallback's own episode, bit for bit, on a
+    # plant with dead time, lag and a load; the report says it was chosen, not handed over.
+    sc = load_scenario("nominal")
+    predicted = [INF, 0.3, 0.5] if start == FALLBACK else [INF, INF, 0.3]
+    sup = Supervised(Wobbly(), make_baseline("rc", sc), DT, sc.reference.period,
+                     SupervisorSpec(), make_baseline("pid", sc))
+    assert sup.choose(predicted) == start
+    ref = make_baseline(alone, sc)
+    got, want = run_episodes([Job(sc, sup, "MPALegResidual-v0", {}, plant=SLOW, seed=11),
+                              Job(sc, ref, "MPALegResidual-v0", {}, plant=SLOW, seed=11)], 11)
+    np.testing.assert_array_equal(got.x, want.x)
+    np.testing.assert_array_equal(got.pressure_cmd_bar, want.pressure_cmd_bar)
+    assert got.start == start and np.all(got.fallback == start)
+    m = trace_metrics(got, sc.reference.period)
+    key = "fallback" if start == FALLBACK else "last_resort"
+    assert m["chosen"] == key and m["policy_share"] == 0.0 and not handed_over(m)
+    assert m[f"{key}_s"] == pytest.approx(got.t[0])
+    said = f"{alone} chosen on the model; policy 0 % of steps"
+    assert hand_overs(m, ["policy", "rc", "pid"]) == said
+    assert _cell(m).endswith("chosen (policy 0 %)")
+
+
+def test_a_loop_the_policy_starts_is_a_hand_over_only_when_a_monitor_trips():
+    sc = load_scenario("nominal")
+    sup = Supervised(Wobbly(), make_baseline("rc", sc), DT, sc.reference.period,
+                     SupervisorSpec(), make_baseline("pid", sc))
+    assert sup.choose([0.4, 0.39, 0.5]) == POLICY
+    (tr,) = run_episodes([Job(sc, sup, "MPALegResidual-v0", {}, seed=3)], 3)
+    m = trace_metrics(tr, sc.reference.period)
+    assert tr.start == POLICY and m["chosen"] is None
+    assert handed_over(m) == (m["fallback_s"] is not None)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A tiny trained run of the default config (its supervisor chooses its start)."""
+    tmp = tmp_path_factory.mktemp("select")
+    return train(tiny_config(tmp, n_envs=2, n_timesteps=64, n_steps=32, batch_size=64,
+                             n_epochs=1), tmp / "run", progress=False)
+
+
+def test_the_prediction_is_each_stage_alone_on_the_model_through_the_single_env(run):
+    # What choose_starts predicts (one batch of the vector env) is what each stage's
+    # controller scores alone on the scenario's model through a single env of its own, the
+    # kick the scenario holds left out; the start follows from those figures.
+    sc = load_scenario("impulse")
+    assert sc.disturbances and model_of(sc).disturbances == ()
+    loaded = load_policy(str(run), {"scenario": sc})
+    (predicted,) = choose_starts([loaded], [sc], [SLOW])
+    sup, _, cfg = loaded
+    assert sup.start == sup.spec.select.start(predicted) and sup.predicted_mm == predicted
+    alone = load_policy(str(run) + ALONE, {"scenario": sc})[0]
+    # the later stages as the supervisor builds them: the run's task settings, its gains
+    task = cfg.env_kwargs.get("task")
+    controllers = [alone] + [make_baseline(s.controller, sc, None, task,
+                                           gains=sup.spec.gains.get(s.controller))
+                             for s in sup.spec.stages[1:]]
+    for ctrl, want in zip(controllers, predicted, strict=True):
+        env = gym.make("MPALegResidual-v0", scenario=model_of(sc), task=eval_task(cfg))
+        tr = run_episode(env, ctrl, MODEL_SEED, options={"plant": SLOW})
+        env.close()
+        assert score_mm(trace_metrics(tr, sc.reference.period)) == pytest.approx(
+            want, rel=1e-9)
+    # a policy without a supervisor, or whose supervisor does not select, chooses nothing
+    assert choose_starts([load_policy(str(run) + ALONE, {"scenario": sc})], [sc], [None]) == [None]
+    with pytest.raises(ValueError, match=r"1 policies, 2 scenarios and 1 plants"):
+        choose_starts([loaded], [sc, sc], [None])
+
+
+@REALTIME
+def test_a_rollout_chooses_its_start_on_the_scenario_and_says_so(run, tmp_path):
+    # The emulator in its own process plays a slow, loaded rig; the rollout is given that
+    # rig as its scenario (what identify --out writes), chooses the start on it before the
+    # rig is touched, logs the choice and its figures, and every step and the summary agree.
+    rig = {"name": "slow_rig", "duration_s": 6.0, "plant": SLOW}
+    log = tmp_path / "r.jsonl"
+    with EmulatorProcess(rig) as emu:
+        out = rollout(str(run), emu.url, log, scenario=rig, episode_s=6.0)
+    stages = out["stages"]
+    assert list(out["predicted_mm"]) == stages == ["policy", "rc", "pid"]
+    start = SupervisorSpec().select.start(list(out["predicted_mm"].values()))
+    (event,) = [r for r in read_log(log) if r.get("event") == "chosen"]
+    assert event["start"] == stages[start] and event["predicted_mm"] == out["predicted_mm"]
+    steps = [r for r in read_log(log) if "reward" in r]
+    assert steps[0]["fallback"] == start
+    ep = out["episodes"][0]
+    assert ep["chosen"] == (None if start == POLICY else
+                            "fallback" if start == FALLBACK else "last_resort")
+    text = show_rollout(out)
+    assert "predicted on the model (scenario 'slow_rig''s plant)" in text
+    assert ("chosen on the model" in text) == (start != POLICY)
+
+
+def test_reports_keep_a_start_chosen_on_the_model_apart_from_a_hand_over(run):
+    # Each sweep cell and random rig gets a supervised policy of its own whose start is
+    # chosen on that plant: a cell says which stage was chosen exactly where choose_starts,
+    # run again on a fresh load for that plant, chooses a later stage; the grid's and the
+    # audit's counts keep the choices apart from the monitors' hand-overs.
+    grid = Grid("delay", "pressure_dead_time_s", (0.0, 0.04), "pressure_lag_s", (0.0, 0.06),
+                base={"extra_mass_kg": 1.0})
+    rob = robustness([str(run)], grids=(grid,), levels={}, kicks={})
+    g = rob["grids"]["delay"]
+    cells = [c for row in g["controllers"][run.name] for c in row]
+    sc = _scenario(load_scenario("nominal"), "delay", {})
+    for cell, plant in zip(cells, grid.cells(), strict=True):
+        fresh = load_policy(str(run), {"scenario": sc})
+        choose_starts([fresh], [sc], [plant])
+        assert cell["chosen"] == (None if fresh[0].start == POLICY else
+                                  "fallback" if fresh[0].start == FALLBACK else "last_resort")
+        assert (cell["policy_share"] == 0.0) if cell["chosen"] else True
+    assert g["chosen"][run.name] == sum(c["chosen"] is not None for c in cells)
+    assert g["hand_overs"][run.name] == sum(map(handed_over, cells))
+    rr = random_rigs([str(run)], 6)
+    audit = rr["audit"][run.name]
+    rows = {r["rig"]: r["controllers"][run.name] for r in rr["rigs"]}
+    assert audit["chosen"] == [i for i, m in rows.items() if m["chosen"] is not None]
+    assert audit["hand_overs"] == [i for i, m in rows.items() if handed_over(m)]
+    assert not set(audit["chosen"]) & set(audit["hand_overs"])
