@@ -16,7 +16,7 @@ from conftest import tiny_config
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import main
-from mpa_gym.agents.controllers.supervisor import take_over_times
+from mpa_gym.agents.controllers.supervisor import handed_over, take_over_times, who_drove
 from mpa_gym.agents.evaluation.episodes import metrics, run_episode
 from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.evaluation.rigs import (
@@ -28,6 +28,7 @@ from mpa_gym.agents.evaluation.rigs import (
     random_rigs,
 )
 from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM, plant_jobs
+from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.policies import ALONE, load_for_plant, load_policy, load_run
 from mpa_gym.agents.training.callbacks import held_out_metrics
 from mpa_gym.agents.training.train import train
@@ -126,7 +127,9 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     assert list(rr["rigs"][0]["controllers"]) == ["r", "r (alone)", "pid"]
     a = rr["audit"]["r"]
     assert a["hand_overs"] == [r["rig"] for r in rr["rigs"]
-                               if r["controllers"]["r"]["fallback_s"] is not None]
+                               if handed_over(r["controllers"]["r"])]
+    assert a["chosen"] == [r["rig"] for r in rr["rigs"]
+                           if r["controllers"]["r"]["chosen"] is not None]
     # rig 2 of the batch, again: the policy alone in a single env of that rig, reset with the
     # rig's plant and episode seed (the report's seed + the rig's number), told the rig's delays
     period, plant = draw(3, 11)[2]
@@ -142,13 +145,16 @@ def test_each_rig_of_the_batch_is_the_episode_of_its_own_plant(run, tmp_path, ca
     # rig period (a supervisor built for the training scenario's 3 s judged a 2-4 s rig's loop
     # by the error's change over 3 s, and handed it to an rc with a 3 s delay line)
     assert abs(period - 3.0) > 0.1
-    supervised, _, _ = load_for_plant(run, sc, plant)
+    loaded = load_for_plant(run, sc, plant)
+    supervised = loaded[0]
     assert supervised.n_period == round(period / 0.01)
+    choose_starts([loaded], [sc], [plant])  # its start, chosen on the rig's plant
     tr = run_episode(env, supervised, 1_000_000 + 2, options={"plant": plant})
     row = rr["rigs"][2]["controllers"]["r"]
     assert row["position_rmse_mm"] == pytest.approx(_last_periods_rmse_mm(tr, period),
                                                     rel=1e-9)
     assert row["fallback_s"] == take_over_times(tr.t, tr.fallback)["fallback_s"]
+    assert row["chosen"] == who_drove(tr.t, tr.fallback, supervised.start)["chosen"]
     # the report says it, rig by rig
     md = (out / "report.md").read_text()
     assert "## Random rigs" in md and md.count("\n| 2 | ") == 1

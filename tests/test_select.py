@@ -15,6 +15,7 @@ from mpa_gym.agents.controllers.baselines import make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     FALLBACK,
     LAST_RESORT,
+    NOISE_FLOOR_MM,
     POLICY,
     Selection,
     Supervised,
@@ -54,9 +55,15 @@ SLOW = {"pressure_dead_time_s": 0.03, "pressure_lag_s": 0.04, "extra_mass_kg": 0
     ([INF, INF, 2.0], LAST_RESORT),  # the policy and the fallback unstable on the model
     ([INF, 3.0], FALLBACK),
     ([INF, INF, INF], POLICY),  # nothing known better: the monitors judge the policy
+    # below the noise floor (0.05 mm) figures are alike: 0.001 vs 0.0001 is no reason
+    ([0.001, 0.0001, 0.002], POLICY),
+    ([0.045, 0.034], POLICY),
+    ([0.07, 0.01], FALLBACK),  # 0.07 > 1.2 x the floor
+    ([0.06, 0.01], POLICY),  # 0.06 = 1.2 x the floor: not more
 ])
 def test_the_policy_starts_unless_a_later_stage_is_predicted_better_by_the_ratio(
         predicted, start):
+    assert NOISE_FLOOR_MM == 0.05
     assert Selection(1.2).start(predicted) == start
 
 

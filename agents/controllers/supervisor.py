@@ -77,6 +77,9 @@ ARM_PERIODS = 2  # periods the limit-cycle and persistent monitors leave out of 
 GRACE_PERIODS = 1  # periods the fallback's loop has to settle before it is judged
 LEVEL_MAX_MM, WINDOW_MAX_S, PERIODS_MAX = 100.0, 30.0, 100  # the monitors' allowed ranges
 RATIO_MAX = 10.0  # Selection.ratio's allowed range is [1, this]
+# [mm] a position RMSE below this is sensor noise (the rigs' encoder noise is 0.02 mm RMS):
+# figures under it are alike, to a supervisor's start (Selection) and to the reports' audits
+NOISE_FLOOR_MM = 0.05
 
 
 def _check_monitor(level_mm: Any, window_s: Any, clip_mm: Any, arm_periods: Any,
@@ -218,9 +221,10 @@ class Selection:
     alone is simulated on the model (``mpa_gym.agents.evaluation.select``: the scenario's plant,
     the rig's as ``mpa-gym identify`` wrote it) and scored as a report scores it; the policy
     starts unless a later stage is predicted better by more than ``ratio`` (then the best
-    predicted stage starts, and its monitors and the cascade after it stay as declared)."""
+    predicted stage starts, and its monitors and the cascade after it stay as declared), a
+    figure below ``NOISE_FLOOR_MM`` counting as that floor (sensor noise)."""
 
-    ratio: float = 1.2  # the policy starts unless its predicted RMSE exceeds ratio x the best
+    ratio: float = 1.1  # the policy starts unless its predicted RMSE exceeds ratio x the best
 
     def __post_init__(self) -> None:
         check_range("supervisor.select.ratio", self.ratio, 1.0, RATIO_MAX)
@@ -228,17 +232,19 @@ class Selection:
     def start(self, predicted_mm: list[float]) -> int:
         """The stage to start at from each stage's predicted position RMSE [mm] (inf: unstable
         or terminated on the model), in cascade order: ``POLICY`` unless a later stage's is
-        below the policy's / ratio, else the best such stage (the earliest of equals)."""
+        below the policy's / ratio, else the best such stage (the earliest of equals); each
+        figure raised to ``NOISE_FLOOR_MM`` first (below it, noise tells them apart)."""
         if len(predicted_mm) < 2:
             raise ValueError(f"predicted_mm={predicted_mm!r}: one figure per stage, at least "
                              "two stages")
-        best = int(np.argmin(predicted_mm[1:])) + 1
-        return best if self.ratio * predicted_mm[best] < predicted_mm[POLICY] else POLICY
+        mm = np.maximum(np.asarray(predicted_mm, dtype=float), NOISE_FLOOR_MM)
+        best = int(np.argmin(mm[1:])) + 1
+        return best if self.ratio * mm[best] < mm[POLICY] else POLICY
 
     def describe(self) -> str:
         return (f"the loop starts at the stage predicted best on the model (each stage's "
                 f"controller alone), the policy unless another is predicted over "
-                f"{self.ratio:g}x better")
+                f"{self.ratio:g}x better (figures below {NOISE_FLOOR_MM:g} mm alike)")
 
 
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())

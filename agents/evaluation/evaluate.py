@@ -138,14 +138,16 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     # plan; batched, one stack of them per baseline
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
            for spec in policies if loads_per_scenario(spec)}
-    # a supervisor's start on each scenario, chosen on its model (select.choose_starts)
-    supervised = [spec for spec in own if has_supervisor(spec)]
-    choose_starts([p for spec in supervised for p in own[spec]],
-                  [sc for _ in supervised for sc in loaded], [None] * len(supervised) * len(loaded))
     stacked = {spec: st for spec, ps in own.items()
                if (st := _stacked([p for p, _, _ in ps])) is not None} if batched else {}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
     try:
+        # a supervisor's start on each scenario, chosen on its model (select.choose_starts),
+        # while the sweep's worker runs
+        supervised = [spec for spec in own if has_supervisor(spec)]
+        choose_starts([p for spec in supervised for p in own[spec]],
+                      [sc for _ in supervised for sc in loaded],
+                      [None] * len(supervised) * len(loaded))
         report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
                                   batched)
         if random_rigs:

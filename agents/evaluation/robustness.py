@@ -46,7 +46,7 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.gains import Gains
-from mpa_gym.agents.controllers.supervisor import handed_over
+from mpa_gym.agents.controllers.supervisor import NOISE_FLOOR_MM, handed_over
 from mpa_gym.agents.evaluation.episodes import (
     UNSTABLE_APERIODIC_MM,
     Job,
@@ -55,7 +55,7 @@ from mpa_gym.agents.evaluation.episodes import (
     recovery_s,
     run_episodes,
 )
-from mpa_gym.agents.evaluation.select import choose_starts
+from mpa_gym.agents.evaluation.select import predict
 from mpa_gym.agents.learned.config import EVAL_SEED
 from mpa_gym.agents.learned.policies import (
     has_supervisor,
@@ -120,7 +120,7 @@ LEVEL_KICK = Impulse(t_s=10.0, force_N=30.0, duration_s=0.05)
 KICKS: dict[str, dict[str, float]] = {"load_1.6kg": {"extra_mass_kg": 1.6}}
 
 HARM_RATIO = 1.5  # a learned residual may be this much worse than the best feedback baseline
-HARM_FLOOR_MM = 0.05  # [mm] an RMSE below this is no harm (sensor noise is 0.02 mm)
+HARM_FLOOR_MM = NOISE_FLOOR_MM  # [mm] an RMSE below this is no harm (sensor noise)
 FEEDBACK_BASELINES = ("pid", "mbfb", "rc")
 
 
@@ -147,25 +147,39 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
     reset with seed ``seed + j``; one controller object for all of them (a batch), except a
     policy that observes the rig's delays, which is told each plant's
     (``policies.load_for_plant``: one object for the plants of equal delays), and a supervised
-    run whose start is chosen on the model (``policies.selects``): one object per plant, its
-    start chosen on that plant (``select.choose_starts``)."""
-    if isinstance(spec, str) and selects(spec):
-        loaded = [load_for_plant(spec, sc, p, gains) for p in plants]
-        choose_starts(loaded, [sc] * len(plants), plants)
-    elif isinstance(spec, str) and tells_delays(spec):  # one object per pair of delays told
-        told: dict[tuple[Any, Any], tuple[Policy, str, Any]] = {}
-        loaded = []
+    run whose start is chosen on the model (``policies.selects``): its stages are predicted on
+    each plant (``select.predict``), and the plants that start at the same stage (and are told
+    the same delays) share one object, started there."""
+    tells = isinstance(spec, str) and tells_delays(spec)
+    told: dict[Any, tuple[Policy, str, Any]] = {}
+    if tells:  # one object per pair of delays told
         for p in plants:
-            key = (p.get("pressure_dead_time_s"), p.get("pressure_lag_s"))
-            if key not in told:
-                told[key] = load_for_plant(spec, sc, p, gains)
-            loaded.append(told[key])
+            if _delays(p) not in told:
+                told[_delays(p)] = load_for_plant(spec, sc, p, gains)
+        loaded = [told[_delays(p)] for p in plants]
     else:
         one = (load_policy(spec, {"scenario": sc}, gains=gains) if isinstance(spec, str)
                else (spec, "MPALegResidual-v0", None))
         loaded = [one] * len(plants)
+    if isinstance(spec, str) and selects(spec):  # one object per start (and delays told)
+        started: dict[Any, tuple[Policy, str, Any]] = {}
+        chose: set[int] = set()  # the objects loaded above that already have their start
+        for j, (p, figures) in enumerate(zip(plants, predict(loaded, [sc] * len(plants),
+                                                                plants), strict=True)):
+            key = (_delays(p) if tells else None, loaded[j][0].spec.select.start(figures))
+            if key not in started:
+                fresh = id(loaded[j][0]) not in chose
+                started[key] = loaded[j] if fresh else load_for_plant(spec, sc, p, gains)
+                chose.add(id(started[key][0]))
+                started[key][0].choose(figures)
+            loaded[j] = started[key]
     return [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
             for j, ((policy, env_id, run_cfg), p) in enumerate(zip(loaded, plants, strict=True))]
+
+
+def _delays(plant: dict[str, float]) -> tuple[Any, Any]:
+    """What a policy that observes the rig's delays is told of ``plant``."""
+    return plant.get("pressure_dead_time_s"), plant.get("pressure_lag_s")
 
 
 def run_batches(specs: list[str | Policy], sc: Scenario, plants: list[dict[str, float]],

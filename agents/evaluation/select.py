@@ -40,25 +40,23 @@ def model_of(scenario: Any) -> Scenario:
                                randomize=Randomization())
 
 
-def choose_starts(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
-                  plants: list[dict[str, Any] | None]) -> list[list[float] | None]:
-    """For each ``loaded[i]`` (``load_policy``'s (policy, env id, run config)) run on
-    ``scenarios[i]`` with ``plants[i]``'s fields: a supervised policy whose spec selects
-    (``spec.select``) gets its start chosen (``Supervised.choose``) on the model of that
-    scenario and plant; returns each one's predicted RMSE per stage [mm] (inf: unstable), None
-    for a policy that chooses nothing. A policy object given twice is chosen for once, on its
-    first scenario and plant (give a supervised policy of its own to each plant)."""
+def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
+            plants: list[dict[str, Any] | None]) -> list[list[float] | None]:
+    """For each ``loaded[i]`` (``load_policy``'s (policy, env id, run config)) to run on
+    ``scenarios[i]`` with ``plants[i]``'s fields: if it is a supervised policy whose spec
+    selects (``spec.select``), each of its stages' controller alone on the model of that
+    scenario and plant, scored [mm] (inf: unstable or terminated), in cascade order; None for
+    any other policy. A policy object given for several plants (one told the delays they
+    share) runs them as rows of one batch, as its controllers do."""
     if not len(loaded) == len(scenarios) == len(plants):
         raise ValueError(f"{len(loaded)} policies, {len(scenarios)} scenarios and "
                          f"{len(plants)} plants: one of each per policy")
     models: dict[int, Scenario] = {}  # id(scenario) -> its model (one env per scenario)
-    jobs, owners, first = [], [], {}
+    jobs, owners = [], []
     for i, ((policy, env_id, cfg), sc, plant) in enumerate(zip(loaded, scenarios, plants,
                                                               strict=True)):
-        if (not isinstance(policy, Supervised) or policy.spec.select is None
-                or id(policy) in first):
+        if not isinstance(policy, Supervised) or policy.spec.select is None:
             continue
-        first[id(policy)] = i
         model = models.setdefault(id(sc), model_of(sc))
         task = eval_task(cfg)
         for ctrl, eid in [(policy.policy, env_id)] + [(c, "MPALegResidual-v0")
@@ -66,12 +64,23 @@ def choose_starts(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
             jobs.append(Job(model, ctrl, eid, task, plant=plant, seed=MODEL_SEED))
             owners.append(i)
     out: list[list[float] | None] = [None] * len(loaded)
-    if not jobs:
-        return out
-    for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
-        out[i] = (out[i] or []) + [score_mm(trace_metrics(
-            tr, load_scenario(scenarios[i]).reference.period))]
-    for i, predicted in enumerate(out):
-        if predicted is not None:
-            loaded[i][0].choose(predicted)
+    if jobs:
+        for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
+            out[i] = (out[i] or []) + [score_mm(trace_metrics(
+                tr, load_scenario(scenarios[i]).reference.period))]
     return out
+
+
+def choose_starts(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
+                  plants: list[dict[str, Any] | None]) -> list[list[float] | None]:
+    """:func:`predict`, and each supervised policy that selects starts where its figures say
+    (``Supervised.choose``); returns the figures. Each policy object must be given once (one
+    loaded for each scenario and plant: its start is its own)."""
+    if len({id(p) for p, _, _ in loaded}) != len(loaded):
+        raise ValueError("choose_starts: a policy object given twice; load one for each "
+                         "scenario and plant (its start is its own)")
+    predicted = predict(loaded, scenarios, plants)
+    for (policy, _, _), figures in zip(loaded, predicted, strict=True):
+        if figures is not None:
+            policy.choose(figures)
+    return predicted
