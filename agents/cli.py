@@ -381,8 +381,9 @@ def show_evaluate(o: dict[str, Any]) -> str:
                   if g["results"][sc].get("fallback_runs") else "") for g in groups.values()]
             for sc, row in res.items()]
     handed = [f"  {line}" for line in o.get("hand_overs") or []]
-    handed += [f"  {g} on {sc}: the fallback took over in {a['fallback_runs']} of "
-               f"{a['n_runs']} runs" for g, v in groups.items()
+    handed += [f"  {g} on {sc}: a fallback drove in {a['fallback_runs']} of {a['n_runs']} runs"
+               + (f" (chosen on the model in {a['chosen_runs']})" if a.get("chosen_runs")
+                  else "") for g, v in groups.items()
                for sc, a in v["results"].items() if a.get("fallback_runs")]
     levels = (o.get("robustness") or {}).get("levels") or {}
     extra = ""
@@ -410,7 +411,8 @@ def show_evaluate(o: dict[str, Any]) -> str:
         extra += (f"\nno harm: {ctrl} breaks a bound on {len(a['harm'])} of {a['checked']} "
                   "cases" + (" (listed in the report)" if a["harm"] else ""))
     if o.get("stages"):
-        extra += ("\nhand-overs (‡: the supervised loop's figure, not the policy's; "
+        extra += ("\nfallbacks that drove, handed the loop or chosen on the model (‡: the "
+                  "supervised loop's figure, not the policy's; "
                   "'<run> (alone)': the policy without its supervisor): "
                   + ("\n" + "\n".join(handed) if handed else "none, the policies drove "
                      "every step"))
@@ -695,7 +697,8 @@ def show_rollout(o: dict[str, Any]) -> str:
     if o.get("predicted_mm"):  # the supervisor's start, chosen on the scenario's plant
         lines.append("predicted on the model (scenario " + repr(o["scenario"]) + "'s plant), "
                      "position RMSE [mm]: " + ", ".join(
-                         f"{c} {v:.3f}" for c, v in o["predicted_mm"].items()))
+                         f"{c} {'unstable' if v is None else f'{v:.3f}'}"
+                         for c, v in o["predicted_mm"].items()))
     for i, m in enumerate(o["episodes"]):
         lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "
                      f"{m['position_max_mm']:.3f} mm, stiffness RMSE "

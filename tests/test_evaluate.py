@@ -154,7 +154,7 @@ def test_groups_and_the_sweep_hold_the_supervised_system_and_the_policy_alone(ru
         assert grp["position_rmse_mm"] == pytest.approx(
             np.mean([row[lab]["position_rmse_mm"] for lab in labels]), rel=1e-12)
     cells = _table(markdown(rep), "position RMSE [mm]")["trip"]
-    assert cells["w (IQM [95 % CI])"].endswith("‡ hand-over in 2 of 2 runs")
+    assert cells["w (IQM [95 % CI])"].endswith("‡ a fallback drove in 2 of 2 runs")
     assert "‡" not in cells["w (alone) (IQM [95 % CI])"]
 
     # the sweep: every cell says who drove; the policy alone is swept beside the supervised run

@@ -45,6 +45,14 @@ time order), what afc itself would converge to. Either way the load the policy c
 carried. A stage without it (``ff``), and every stage after the fallback, starts from its rest
 state.
 
+Where the spec has a ``select`` (``Selection``), the stage every episode starts at is chosen
+before it, on the model: each stage's controller alone is simulated on the scenario's plant
+(``mpa_gym.agents.evaluation.select``) and the policy starts unless a later stage is predicted
+better by more than its ratio (``Supervised.choose``). Monitors that fire on instability alone
+cannot see a stable loop that its fallback would track better, and hand an unstable one over
+too late for it to settle; the model sees both before the first step. A chosen stage starts
+from its rest state and is reported as chosen (``who_drove``'s ``chosen``), not as a hand-over.
+
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
 rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage, and
 ``who_drove`` the times the fallback and the last resort took over and the share of steps the
@@ -69,6 +77,8 @@ from mpa_gym.task.contract import OBS_XREF as OXR
 
 POLICY, FALLBACK, LAST_RESORT = 0, 1, 2  # the stages' places in the cascade: who drives
 HAND_OVERS = (("fallback_s", FALLBACK), ("last_resort_s", LAST_RESORT))  # report key, stage
+# a later stage's name in reports where it drove from the start (who_drove's ``chosen``)
+CHOSEN = {FALLBACK: "fallback", LAST_RESORT: "last_resort"}
 FALLBACKS = ("pid", "mbfb", "rc")  # the flat form's fallbacks (a declared stage names any baseline)
 # the last resorts (mpa_gym.agents.controllers.baselines names) and what ``describe`` calls them
 LAST_RESORTS = {"ff": "ff alone",
@@ -333,8 +343,10 @@ class SupervisorSpec:
         used = {m for s in stages for m in s.monitors}
         monitors = _monitors(value.get("monitors"))
         # the monitors the stages use (if they name none known, all: the error lists them)
+        # an omitted select is the dataclass's default (a start chosen at its ratio)
+        select = {"select": _selection(value["select"])} if "select" in value else {}
         return cls(tuple(m for m in monitors if m.name in used) or monitors, stages,
-                   value.get("gains"), _selection(value.get("select", {})))
+                   value.get("gains"), **select)
 
     @classmethod
     def from_flat(cls, value: dict[str, Any]) -> SupervisorSpec:
@@ -642,8 +654,7 @@ def who_drove(t: np.ndarray, stages: np.ndarray | None, start: int = POLICY
     ``"last_resort"`` where it was chosen on the model before the episode rather than handed
     the loop by a monitor, None where the policy started."""
     return {**take_over_times(t, stages), "policy_share": policy_share(stages),
-            "chosen": None if start == POLICY else next(
-                key for key, stage in HAND_OVERS if stage == start).removesuffix("_s")}
+            "chosen": CHOSEN.get(start)}
 
 
 def handed_over(row: dict[str, Any]) -> bool:
@@ -654,15 +665,17 @@ def handed_over(row: dict[str, Any]) -> bool:
 
 def hand_overs(row: dict[str, Any], stages: list[str] | None = None) -> str:
     """What a report row (:func:`who_drove`'s keys) says of the controllers that drove besides
-    the policy, e.g. ``pid from 9.5 s, afc from 12.0 s; policy 79 % of steps`` (``stages``: the
-    supervisor's controllers in cascade order; without them ``fallback`` / ``last_resort``);
-    ``""`` where nothing took over."""
+    the policy, e.g. ``pid from 9.5 s, afc from 12.0 s; policy 79 % of steps`` or ``rc chosen
+    on the model; policy 0 % of steps`` (``stages``: the supervisor's controllers in cascade
+    order; without them ``fallback`` / ``last_resort``); ``""`` where nothing took over."""
     took, first = [], row.get("chosen")
     for key, i in HAND_OVERS:
-        name = stages[i] if stages else key.removesuffix("_s")
-        if first == key.removesuffix("_s"):
+        if row.get(key) is None:  # (a two-stage cascade has no last resort)
+            continue
+        name = stages[i] if stages else CHOSEN[i]
+        if first == CHOSEN[i]:
             took.append(f"{name} chosen on the model")
-        elif row.get(key) is not None and not (first == "last_resort" and i == FALLBACK):
+        elif not (first == CHOSEN[LAST_RESORT] and i == FALLBACK):
             took.append(f"{name} from {row[key]:.1f} s")
     if not took:
         return ""

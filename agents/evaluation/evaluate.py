@@ -54,7 +54,9 @@ import mpa_gym  # noqa: F401
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
 from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import (
+    CHOSEN,
     HAND_OVERS,
+    LAST_RESORT,
     Supervised,
     hand_overs,
     take_over_times,
@@ -602,6 +604,9 @@ def markdown(report: dict[str, Any]) -> str:
             cells = []
             for c in ctrls:
                 cell = _fmt(row[c].get(key)) + (" (terminated)" if row[c]["terminated"] else "")
+                if key == f"{row[c].get('chosen')}_s" or (
+                        key == "fallback_s" and row[c].get("chosen") == CHOSEN[LAST_RESORT]):
+                    cell = "chosen on the model" if key == f"{row[c]['chosen']}_s" else "–"
                 took = "" if key in WHO_DROVE else hand_overs(row[c], stages.get(c))
                 cells.append(cell + (f" ‡ {took}" if took else ""))
             for g in groups.values():
@@ -612,10 +617,14 @@ def markdown(report: dict[str, Any]) -> str:
                     cell += f" [{lo:.3f}, {hi:.3f}]"
                 if key in ("fallback_s", "last_resort_s"):
                     cell = f"in {a[key.removesuffix('_s') + '_runs']} of {a['n_runs']} runs"
+                    if a.get("chosen_runs"):
+                        cell += f" (chosen on the model in {a['chosen_runs']})"
                 if a["terminated"]:
                     cell += f" ({a['terminated']} of {a['n_runs']} terminated)"
                 if key not in WHO_DROVE and a.get("fallback_runs"):
-                    cell += f" ‡ hand-over in {a['fallback_runs']} of {a['n_runs']} runs"
+                    cell += (f" ‡ a fallback drove in {a['fallback_runs']} of {a['n_runs']} "
+                             "runs" + (f" (chosen on the model in {a['chosen_runs']})"
+                                       if a.get("chosen_runs") else ""))
                 cells.append(cell)
             out.append(f"| {sc} | " + " | ".join(cells) + " |")
         out.append("")
@@ -675,12 +684,13 @@ def scenario_figure(sc: str, per_ctrl: dict[str, Trace],
         names = (stages or {}).get(name)
         for (key, stage), ls in zip(HAND_OVERS, ("--", ":"), strict=True):
             t = take_over_times(tr.t, tr.fallback)[key]
-            if t is None:
+            if t is None or stage < tr.start:  # a stage the chosen start passed over
                 continue
-            who = names[stage] if names else key.removesuffix("_s")
+            who = names[stage] if names else CHOSEN[stage]
+            said = "chosen on the model" if stage == tr.start else f"from {t:.1f} s"
             for a in ax:
                 a.axvline(t, color=c, ls=ls, lw=1.2,
-                          label=f"{name}: {who} from {t:.1f} s" if a is ax[1] else None)
+                          label=f"{name}: {who} {said}" if a is ax[1] else None)
     ax[0].set(ylabel="X [mm]", title=f"scenario {sc}")
     ax[1].set(ylabel="X − X̂ [mm]")
     ax[2].set(ylabel="k [N/m]")

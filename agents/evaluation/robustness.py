@@ -46,7 +46,13 @@ import numpy as np
 
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.gains import Gains
-from mpa_gym.agents.controllers.supervisor import NOISE_FLOOR_MM, handed_over
+from mpa_gym.agents.controllers.supervisor import (
+    CHOSEN,
+    FALLBACK,
+    LAST_RESORT,
+    NOISE_FLOOR_MM,
+    handed_over,
+)
 from mpa_gym.agents.evaluation.episodes import (
     UNSTABLE_APERIODIC_MM,
     Job,
@@ -171,6 +177,7 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
                 fresh = id(loaded[j][0]) not in chose
                 started[key] = loaded[j] if fresh else load_for_plant(spec, sc, p, gains)
                 chose.add(id(started[key][0]))
+                # the start the key says (predicted_mm: this group's first plant's figures)
                 started[key][0].choose(figures)
             loaded[j] = started[key]
     return [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
@@ -358,9 +365,9 @@ def no_harm(results: dict[str, Any], rob: dict[str, Any] | None, learned: list[s
 
 def _cell(m: dict[str, Any]) -> str:
     fb, lr, first = m.get("fallback_s"), m.get("last_resort_s"), m.get("chosen")
-    took = ("" if fb is None or first == "last_resort" else
-            " ‡chosen" if first == "fallback" else f" ‡{fb:.1f} s") + (
-        "" if lr is None else " §chosen" if first == "last_resort" else f" §{lr:.1f} s")
+    took = ("" if fb is None or first == CHOSEN[LAST_RESORT] else
+            " ‡chosen" if first == CHOSEN[FALLBACK] else f" ‡{fb:.1f} s") + (
+        "" if lr is None else " §chosen" if first == CHOSEN[LAST_RESORT] else f" §{lr:.1f} s")
     if fb is not None and m.get("policy_share") is not None:
         took += f" (policy {m['policy_share'] * 100:.0f} %)"
     if m["terminated"]:

@@ -183,7 +183,8 @@ def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, 
     IQM over the runs and ``<metric>_ci`` [low, high] (``policy_share`` among them: the share of
     steps the learned policy drove), plus ``n_runs``, ``terminated`` (how many runs
     terminated), ``fallback_runs`` and ``last_resort_runs`` (in how many a supervisor's
-    fallback, and its last resort, took over)."""
+    fallback, and its last resort, drove) and ``chosen_runs`` (in how many of those it drove
+    from the start, chosen on the model: ``who_drove``'s ``chosen``)."""
     labels = [spec_label(r) for r in runs]
     scen = list(results)
     out: dict[str, dict[str, Any]] = {sc: {"n_runs": len(runs)} for sc in scen}
@@ -199,6 +200,8 @@ def aggregate(results: dict[str, dict[str, Any]], runs: list[str]) -> dict[str, 
         for key in ("fallback", "last_resort"):
             out[sc][f"{key}_runs"] = sum(results[sc][lab].get(f"{key}_s") is not None
                                          for lab in labels)
+        out[sc]["chosen_runs"] = sum(results[sc][lab].get("chosen") is not None
+                                     for lab in labels)
     return out
 
 

@@ -52,12 +52,15 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
         raise ValueError(f"{len(loaded)} policies, {len(scenarios)} scenarios and "
                          f"{len(plants)} plants: one of each per policy")
     models: dict[int, Scenario] = {}  # id(scenario) -> its model (one env per scenario)
-    jobs, owners = [], []
+    jobs, owners, period = [], [], {}
     for i, ((policy, env_id, cfg), sc, plant) in enumerate(zip(loaded, scenarios, plants,
                                                               strict=True)):
         if not isinstance(policy, Supervised) or policy.spec.select is None:
             continue
-        model = models.setdefault(id(sc), model_of(sc))
+        if id(sc) not in models:
+            models[id(sc)] = model_of(sc)
+        model = models[id(sc)]
+        period[i] = model.reference.period
         task = eval_task(cfg)
         for ctrl, eid in [(policy.policy, env_id)] + [(c, "MPALegResidual-v0")
                                                      for c in policy.controllers]:
@@ -66,8 +69,7 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
     out: list[list[float] | None] = [None] * len(loaded)
     if jobs:
         for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
-            out[i] = (out[i] or []) + [score_mm(trace_metrics(
-                tr, load_scenario(scenarios[i]).reference.period))]
+            out[i] = (out[i] or []) + [score_mm(trace_metrics(tr, period[i]))]
     return out
 
 

@@ -201,12 +201,17 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
     told = known_delays(policy)
     # a supervisor that chooses its start does so on the scenario's plant (identify --out's),
     # in simulation before the rig is touched, with the run's batch path (select.choose_starts)
-    predicted = None
-    if isinstance(policy, Supervised) and policy.spec.select is not None:
+    supervised = isinstance(policy, Supervised)
+    stages = [s.controller for s in run_cfg.supervisor.stages] if supervised else None
+    first = POLICY  # the supervisor's stage every episode starts at
+    predicted = None  # {stage: [mm] predicted on the model} where the start was chosen
+    if supervised and policy.spec.select is not None:
         model = load_policy(policy_spec, {"scenario": scenario,
                                           "task": {"dt_s": 1.0 / control_hz}}, gains=gains)
-        predicted = choose_starts([model], [scenario], [None])[0]
-        policy.choose(predicted)
+        figures = choose_starts([model], [scenario], [None])[0]
+        first = policy.choose(figures)
+        predicted = {st: (None if math.isinf(v) else v)  # JSON has no infinity: unstable
+                     for st, v in zip(stages, figures, strict=True)}
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
@@ -228,9 +233,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                    "scenario": env.plan.scenario.name, "control_hz": control_hz,
                    "episodes": episodes, "seed": seed, "told_delays_s": told})
         if predicted is not None:  # the start chosen on the model, and on what figures
-            stages = [st.controller for st in run_cfg.supervisor.stages]
-            _write(f, {"event": "chosen", "start": stages[policy.start],
-                       "predicted_mm": dict(zip(stages, predicted, strict=True)),
+            _write(f, {"event": "chosen", "start": stages[first], "predicted_mm": predicted,
                        "supervisor": run_cfg.supervisor.describe()})
         try:
             pre = preflight(env)
@@ -240,7 +243,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                 state, start = None, np.array([True])
                 rows: list[dict[str, Any]] = []
                 # the supervisor's stage this episode (mpa_gym.agents.controllers.supervisor)
-                fell = policy.start if isinstance(policy, Supervised) else POLICY
+                fell = first
                 while True:
                     action, state = policy.predict(obs, state, start, deterministic=True)
                     start = np.array([False])
@@ -261,8 +264,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                         break
                     env.defer(record)
                 os.fsync(f.fileno())
-                results.append(_episode_metrics(
-                    rows, env, policy.start if isinstance(policy, Supervised) else POLICY))
+                results.append(_episode_metrics(rows, env, first))
                 if term:  # a safety stop: the rig is vented, the session ends here
                     stopped = f"episode {ep}: {info.get('fault', 'terminated')}"
                     _write(f, {"event": "stopped", "episode": ep, "fault": stopped})
@@ -280,14 +282,12 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             raise
     period = np.array(env.timing["period_s"])
     jitter = np.abs(period - env.cfg.dt_s)
-    stages = ([s.controller for s in run_cfg.supervisor.stages]
-              if isinstance(policy, Supervised) else None)
     if stages is not None:  # who drove each episode, for the summary
         for m in results:
             m["hand_overs"] = hand_overs(m, stages)
     out: dict[str, Any] = {
         "episodes": results, "log": str(log_path), "stages": stages, "told_delays_s": told,
-        "predicted_mm": None if predicted is None else dict(zip(stages, predicted, strict=True)),
+        "predicted_mm": predicted,
         "scenario": env.plan.scenario.name,
         "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
                    "steps": len(env.timing["latency_s"]), "realtime": rt_report,
