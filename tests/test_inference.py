@@ -220,7 +220,8 @@ def test_a_run_folder_written_before_0_2_loads_and_acts_the_same(tiny_run, tmp_p
         "stages": [{"controller": "policy",
                     "monitors": ["divergence", "limit_cycle", "persistent"]},
                    {"controller": "pid", "monitors": ["divergence"], "grace_periods": 1},
-                   {"controller": "afc"}]}
+                   {"controller": "afc"}],
+        "select": None}  # the flat form always started the policy
     today = tmp_path / "today_run"
     shutil.copytree(tiny_run, today)
     cfg = yaml.safe_load((today / "config.yaml").read_text())

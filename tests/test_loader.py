@@ -229,11 +229,14 @@ def test_the_loaded_policy_reproduces_the_evaluation(run):
     # over the loaded policy, stateless, supervised and alone
     from mpa_gym.agents import load_policy
     from mpa_gym.agents.evaluation.evaluate import evaluate
+    from mpa_gym.agents.evaluation.select import choose_starts
 
     sc = load_scenario("load_1kg")
     report = evaluate([str(run)], [sc.name])["results"][sc.name]
     for supervised, label in ((True, run.name), (False, f"{run.name} (alone)")):
         policy, env_id, cfg = load_policy(run, {"scenario": sc.name}, supervised=supervised)
+        if supervised:  # its start chosen on the scenario's model, as evaluate chooses it
+            choose_starts([(policy, env_id, cfg)], [sc], [None])
         env = gym.make(env_id, scenario=sc.name, task=eval_task(cfg))
         obs, info = env.reset(seed=EVAL_SEED)
         policy.reset()

@@ -514,6 +514,9 @@ def load_policy(spec: str | Path, env_kwargs: dict[str, Any] | None = None,
     supervised : bool
         A run under its config's ``supervisor`` section (the supervised system, what
         ``evaluate`` and ``rollout`` run), if it has one; False: the learned policy alone.
+        A supervisor whose section has ``select`` starts at the policy until its start is
+        chosen on the model: ``mpa_gym.agents.evaluation.select.choose_starts([loaded],
+        [scenario], [plant])``, as ``evaluate`` and ``rollout`` do before the first episode.
     which : {"final", "best"}
         A run's ``model.zip`` or ``best/best_model.zip`` (the best held-out evaluation).
     gains : Gains, optional
