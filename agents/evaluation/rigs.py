@@ -83,11 +83,12 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     # a supervised run is loaded for each rig (its monitors and fallbacks follow the rig's
     # reference period), a policy that observes delays told the rig's (loads_per_scenario)
     learned = {p: load_policy(p) for p in policies if not loads_per_scenario(p)}
+    choosing = {p for p in policies if selects(p)}  # read each run's config once
     jobs, chosen = [], []
     for i, (sc, (_, plant)) in enumerate(zip(scenarios, rigs, strict=True)):
         for p in policies:
             one = learned[p] if p in learned else load_for_plant(p, sc, plant, gains)
-            if selects(p):
+            if p in choosing:
                 chosen.append((one, sc, plant))
             policy, env_id, cfg = one
             jobs.append(Job(sc, policy, env_id, eval_task(cfg), plant=plant,
