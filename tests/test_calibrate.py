@@ -97,6 +97,31 @@ def test_calibrated_levels_keep_quiet_on_the_plants_the_policy_keeps(tiny_run):
     assert written == again.section()
 
 
+def test_calibration_measures_and_keeps_the_supervisors_gains(tiny_run, tmp_path):
+    # a run whose supervisor has gains of its own (a gains file's mapping, inline): its
+    # fallbacks are measured with them, and --write keeps them. The pid given here is a
+    # proportional gain of 1e4 bar/m with no integral or derivative action, which no plant
+    # survives (each of its episodes counts FAILED_MM), so its mean is FAILED_MM exactly;
+    # with its default gains pid tracks these four plants (24 s episodes, as calibrate runs)
+    import shutil
+
+    from mpa_gym.agents.evaluation import calibrate as cal
+    from mpa_gym.agents.learned.config import load_config
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    assert dict(cal.calibrate(run, n_plants=4).order)["pid"] < cal.FAILED_MM
+    data = yaml.safe_load((run / "config.yaml").read_text())
+    gains = {"pid": {"kp_bar_per_m": 1e4, "ki_bar_per_m_s": 0.0, "kd_bar_s_per_m": 0.0}}
+    data["mpa_gym"]["supervisor"]["gains"] = gains
+    (run / "config.yaml").write_text(yaml.safe_dump(data))
+    found = cal.calibrate(run, n_plants=4)
+    assert dict(found.order)["pid"] == cal.FAILED_MM and found.order[-1][0] == "pid"
+    cal.write(run, found)
+    spec = load_config(run / "config.yaml").supervisor
+    assert spec.gains == gains and spec.select == found.spec.select
+
+
 def test_calibrate_refuses_what_is_not_a_run(tmp_path):
     out = subprocess.run([sys.executable, "-m", "mpa_gym.agents.cli", "calibrate",
                           str(tmp_path)], capture_output=True, text=True, timeout=120)

@@ -6,8 +6,8 @@ fires on good loops elsewhere; so it is chosen here on draws of the run's own tr
 randomisation (``CALIBRATION_SEED``, disjoint from the training envs' and the evaluation's
 seeds), and its rule is stated:
 
-- the policy alone and every candidate fallback (``CANDIDATES``) run one episode of
-  ``episode_s`` on each of ``n_plants`` draws;
+- the policy alone and every candidate fallback (``CANDIDATES``, with the supervisor's
+  ``gains``) run one episode of ``episode_s`` on each of ``n_plants`` draws;
 - the fallback order is the candidates sorted by their mean position RMSE (an unstable or
   terminated episode counts ``FAILED_MM``) over the plants a fallback is for, those on which
   the policy alone is unstable or tracks worse than a candidate: the first drives after the
@@ -25,7 +25,8 @@ seeds), and its rule is stated:
   allowed levels (``LEVEL_MAX_MM``) to stay quiet there is dropped.
 
 ``mpa-gym calibrate RUN_DIR`` prints what it found and, with ``--write``, writes the levels and
-the order into the run folder's ``config.yaml`` (the old one kept beside it).
+the order into the run folder's ``config.yaml`` (the old one kept beside it); the section's
+``gains`` and ``select`` are kept as they were.
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ class Calibration:
                 "stages": [{"controller": s.controller, "monitors": list(s.monitors),
                             **({"grace_periods": s.grace_periods} if s.grace_periods else {})}
                            for s in self.spec.stages],
+                **({"gains": self.spec.gains} if self.spec.gains else {}),
                 "select": (None if self.spec.select is None
                            else dataclasses.asdict(self.spec.select))}
 
@@ -119,8 +121,12 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
     sc = dataclasses.replace(base, duration_s=float(episode_s))
     rng = np.random.default_rng(seed)
     plants = [base.randomize.sample(rng) for _ in range(n_plants)]
+    # the run's supervisor as configured: its fallbacks are measured with its gains, and
+    # calibrating keeps its gains, select and the shape of its cascade
+    current = cfg.supervisor if cfg.supervisor is not None else SupervisorSpec()
     scored = [f"{run}{ALONE}", *CANDIDATES]
-    jobs = [job for spec in scored for job in plant_jobs(spec, sc, plants, seed)]
+    jobs = [job for spec in scored
+            for job in plant_jobs(spec, sc, plants, seed, gains=current.gains)]
     traces = run_episodes(jobs, seed)
     period = sc.reference.period
     dt = float(traces[0].t[0])
@@ -153,9 +159,6 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
     keep = np.array([not p["unstable"] and score(p) <= score(f)
                      for p, f in zip(policy, cells[first], strict=True)])
     n_period = max(1, round(period / dt))
-    current = SupervisorSpec.from_config(cfg.raw.get("mpa_gym", {}).get("supervisor") or {}
-                                         ) if (cfg.raw.get("mpa_gym", {}) or {}).get(
-                                             "supervisor") else SupervisorSpec()
     monitors, peaks, dropped = [], {}, []
     for m in current.monitors:
         peak = (float(running_rms(m, errors[scored[0]][:, keep], n_period, dt).max())
@@ -182,7 +185,8 @@ def calibrate(run_dir: str | Path, n_plants: int = 48, episode_s: float = 24.0,
         stages.append(Stage(order[1][0]))
     else:
         stages[-1] = Stage(first)
-    spec = SupervisorSpec(tuple(monitors), tuple(stages), select=current.select)
+    spec = SupervisorSpec(tuple(monitors), tuple(stages), gains=current.gains,
+                          select=current.select)
     return Calibration(spec, order, int(where.sum()), int(keep.sum()), n_plants, peaks,
                        dropped)
 
