@@ -91,6 +91,13 @@ def test_anchor_follows_every_change_of_the_weights_and_the_rest_point():
     policy.normalizer.obs_rms.mean = policy.normalizer.obs_rms.mean + 0.7
     set_rest(policy.model)
     assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    # a weight or the rest point assigned anew (not changed in place): its tensor is another
+    pol.action_net.bias = th.nn.Parameter(pol.action_net.bias.detach() + 0.5)
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    pol.rest_obs = pol.rest_obs.clone()
+    policy.normalizer.obs_rms.mean = policy.normalizer.obs_rms.mean - 0.4
+    set_rest(policy.model)
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
     off = _at_rest()
     off[0] -= 0.2
     assert np.max(np.abs(policy.predict(off, episode_start=start)[0])) > 1e-3

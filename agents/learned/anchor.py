@@ -36,6 +36,18 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 
+# tensors registered as a parameter or buffer of any module, counted: a cached list of a
+# module's tensors is stale once this changes (torch's global registration hooks)
+_REGISTERED = [0]
+
+
+def _registered(*_: Any) -> None:
+    _REGISTERED[0] += 1
+
+
+th.nn.modules.module.register_module_parameter_registration_hook(_registered)
+th.nn.modules.module.register_module_buffer_registration_hook(_registered)
+
 
 class RestAnchoredPolicy(ActorCriticPolicy):
     """``MlpPolicy`` whose Gaussian mean is f(o) − f(o_rest) (module docstring)."""
@@ -48,13 +60,19 @@ class RestAnchoredPolicy(ActorCriticPolicy):
         n = int(np.prod(self.observation_space.shape))
         self.register_buffer("rest_obs", th.zeros(n, dtype=th.float32))
         self._cached: tuple[tuple[int, ...], th.Tensor] | None = None
+        self._watched: tuple[int, tuple[th.Tensor, ...]] | None = None
 
     def _versions(self) -> tuple[int, ...]:
         """Torch's in-place version counters of the rest point and the actor's weights: any
-        optimiser step or ``set_rest`` changes one of them."""
-        mods = (self.mlp_extractor.policy_net, self.action_net, self.pi_features_extractor)
-        return (id(self.rest_obs), self.rest_obs._version,
-                *(v for m in mods for q in m.parameters() for v in (id(q), q._version)))
+        optimiser step, ``load_state_dict`` or ``set_rest`` changes one of them; a tensor
+        registered anew (a parameter or buffer assigned) changes ``_REGISTERED``, after which
+        the tensors are gathered again. One call costs a few microseconds: a report calls it
+        once per step."""
+        if self._watched is None or self._watched[0] != _REGISTERED[0]:
+            mods = (self.mlp_extractor.policy_net, self.action_net, self.pi_features_extractor)
+            self._watched = (_REGISTERED[0], (self.rest_obs, *(q for m in mods
+                                                              for q in m.parameters())))
+        return (self._watched[0], *(t._version for t in self._watched[1]))
 
     def rest_offset(self) -> th.Tensor:
         """f(o_rest): what the mean subtracts, (1, n_actions). Without gradients (rollouts,
