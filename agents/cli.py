@@ -845,10 +845,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rigs-seed", type=int, default=None, metavar="S",
                    help="the random rigs' draws (default: rigs.RIGS_SEED, beyond the seeds of "
                         "training, evaluation and calibration)")
-    p = add("tune-baselines", "tune the pid / mbfb gains on a PPO config's training plants "
+    p = add("tune-baselines", "tune the pid / mbfb / rc gains on a PPO config's training plants "
             "and their undamped twins (Optuna TPE, mean position RMSE; unstable counts as "
             "failed)", cmd_tune_baselines, show_tune_baselines)
-    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb", "rc"])
+    p.add_argument("--policy", nargs="+", default=["pid", "mbfb"], choices=["pid", "mbfb", "rc"],
+                   help="the baselines to tune (default: pid mbfb; rc's search space is its "
+                        "learning gain and delay margin)")
     p.add_argument("--config", default=None, metavar="YAML",
                    help="PPO config whose training scenario gives the plants (default: the "
                         "default PPO config, mpa_gym.agents.learned.config.DEFAULT_CONFIG)")
