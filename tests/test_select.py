@@ -173,6 +173,27 @@ def test_the_prediction_is_each_stage_alone_on_the_model_through_the_single_env(
         choose_starts([loaded], [sc, sc], [None])
 
 
+def test_predicting_many_at_once_is_predicting_each_alone(run):
+    # predict runs each later stage's controllers of every policy given as one stacked batch:
+    # the figures must be those of each policy predicted on its own, on scenarios of other
+    # reference periods (rc's delay line is a period long) and plants of their own
+    import dataclasses
+
+    from mpa_gym.agents.evaluation.select import predict
+
+    heldout = load_scenario("heldout_a")
+    fast = dataclasses.replace(heldout, name="fast", reference=dataclasses.replace(
+        heldout.reference, period=2.0))
+    cases = [(load_scenario("impulse"), SLOW), (heldout, None),
+             (fast, {"pressure_dead_time_s": 0.02, "extra_mass_kg": 1.5})]
+    together = predict([load_policy(str(run), {"scenario": sc}) for sc, _ in cases],
+                        [sc for sc, _ in cases], [p for _, p in cases])
+    for (sc, plant), figures in zip(cases, together, strict=True):
+        (alone,) = predict([load_policy(str(run), {"scenario": sc})], [sc], [plant])
+        assert len(figures) == 3 and figures == alone, (sc.name, figures, alone)
+    assert len({tuple(f) for f in together}) == len(cases)  # three plants, three figures
+
+
 @REALTIME
 def test_a_rollout_chooses_its_start_on_the_scenario_and_says_so(run, tmp_path):
     # The emulator in its own process plays a slow, loaded rig; the rollout is given that

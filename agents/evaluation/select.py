@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
+from mpa_gym.agents.controllers.baselines import stack
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, score_mm, trace_metrics
 from mpa_gym.agents.learned.config import EVAL_SEED
@@ -53,6 +54,7 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
                          f"{len(plants)} plants: one of each per policy")
     models: dict[int, Scenario] = {}  # id(scenario) -> its model (one env per scenario)
     jobs, owners, period = [], [], {}
+    later: dict[int, list[int]] = {}  # a later stage -> its jobs, in the order of ``loaded``
     for i, ((policy, env_id, cfg), sc, plant) in enumerate(zip(loaded, scenarios, plants,
                                                               strict=True)):
         if not isinstance(policy, Supervised) or policy.spec.select is None:
@@ -62,10 +64,22 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
         model = models[id(sc)]
         period[i] = model.reference.period
         task = eval_task(cfg)
-        for ctrl, eid in [(policy.policy, env_id)] + [(c, "MPALegResidual-v0")
-                                                     for c in policy.controllers]:
+        for s, (ctrl, eid) in enumerate([(policy.policy, env_id)] + [
+                (c, "MPALegResidual-v0") for c in policy.controllers]):
+            if s:
+                later.setdefault(s, []).append(len(jobs))
             jobs.append(Job(model, ctrl, eid, task, plant=plant, seed=MODEL_SEED))
             owners.append(i)
+    # each later stage's controllers as one batch where they stack (one kind, gains and task
+    # config; each row its own plan, with the numbers its own controller gives): one call per
+    # step for the fallbacks of every scenario, cell or rig, not one per policy loaded
+    for idx in later.values():
+        try:
+            one = stack([jobs[j].policy for j in idx])
+        except (ValueError, TypeError):  # of several kinds, or not a baseline: one by one
+            continue
+        for j in idx:
+            jobs[j] = dataclasses.replace(jobs[j], policy=one)
     out: list[list[float] | None] = [None] * len(loaded)
     if jobs:
         for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
