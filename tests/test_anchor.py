@@ -3,6 +3,8 @@ features."""
 
 from __future__ import annotations
 
+import copy
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -96,6 +98,16 @@ def test_anchor_follows_every_change_of_the_weights_and_the_rest_point():
     assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
     pol.rest_obs = pol.rest_obs.clone()
     policy.normalizer.obs_rms.mean = policy.normalizer.obs_rms.mean - 0.4
+    set_rest(policy.model)
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    # a submodule assigned anew, and a move or cast (torch swaps the tensors in unregistered)
+    replaced = copy.deepcopy(pol.action_net)
+    with th.no_grad():
+        replaced.bias.add_(0.3)
+    pol.action_net = replaced
+    assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
+    pol._apply(lambda t: t.clone())
+    policy.normalizer.obs_rms.mean = policy.normalizer.obs_rms.mean + 0.4
     set_rest(policy.model)
     assert np.array_equal(policy.predict(_at_rest(), episode_start=start)[0], np.zeros(2))
     off = _at_rest()

@@ -36,7 +36,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import DiagGaussianDistribution, Distribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 
-# tensors registered as a parameter or buffer of any module, counted: a cached list of a
+# parameters, buffers and submodules assigned to any module, counted: a cached list of a
 # module's tensors is stale once this changes (torch's global registration hooks)
 _REGISTERED = [0]
 
@@ -47,10 +47,16 @@ def _registered(*_: Any) -> None:
 
 th.nn.modules.module.register_module_parameter_registration_hook(_registered)
 th.nn.modules.module.register_module_buffer_registration_hook(_registered)
+th.nn.modules.module.register_module_module_registration_hook(_registered)
 
 
 class RestAnchoredPolicy(ActorCriticPolicy):
     """``MlpPolicy`` whose Gaussian mean is f(o) − f(o_rest) (module docstring)."""
+
+    # the rest offset's cache (``rest_offset``) and the tensors its key reads (``_versions``);
+    # here too for an object unpickled without __init__
+    _cached: tuple[tuple[int, ...], th.Tensor] | None = None
+    _watched: tuple[int, tuple[th.Tensor, ...]] | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -59,15 +65,21 @@ class RestAnchoredPolicy(ActorCriticPolicy):
                              "(use_sde=False, squash_output=False)")
         n = int(np.prod(self.observation_space.shape))
         self.register_buffer("rest_obs", th.zeros(n, dtype=th.float32))
-        self._cached: tuple[tuple[int, ...], th.Tensor] | None = None
-        self._watched: tuple[int, tuple[th.Tensor, ...]] | None = None
+
+    def _apply(self, fn: Any, *args: Any, **kwargs: Any) -> Any:
+        """``to``, ``cpu``, ``float``, …: torch puts new tensors in place of the old without
+        registering them, so the cache and the tensors its key reads are dropped."""
+        self._cached = self._watched = None
+        return super()._apply(fn, *args, **kwargs)
 
     def _versions(self) -> tuple[int, ...]:
         """Torch's in-place version counters of the rest point and the actor's weights: any
-        optimiser step, ``load_state_dict`` or ``set_rest`` changes one of them; a tensor
-        registered anew (a parameter or buffer assigned) changes ``_REGISTERED``, after which
-        the tensors are gathered again. One call costs a few microseconds: a report calls it
-        once per step."""
+        optimiser step, ``load_state_dict`` or ``set_rest`` changes one of them; a parameter,
+        buffer or submodule assigned anew changes ``_REGISTERED``, and ``_apply`` (a move or
+        cast) drops the list, after which the tensors are gathered again. Writing a tensor's
+        ``.data`` (``torch.nn.utils.vector_to_parameters``) changes no counter: follow it by
+        ``load_state_dict`` or an in-place copy. One call costs a few microseconds: a report
+        calls it once per step."""
         if self._watched is None or self._watched[0] != _REGISTERED[0]:
             mods = (self.mlp_extractor.policy_net, self.action_net, self.pi_features_extractor)
             self._watched = (_REGISTERED[0], (self.rest_obs, *(q for m in mods
