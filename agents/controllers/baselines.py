@@ -637,6 +637,15 @@ def stack(policies: list[Policy]) -> Policy:
     return dataclasses.replace(first, row_plans=tuple(p.plan for p in policies))
 
 
+def stacked(policies: list[Policy]) -> Policy | None:
+    """:func:`stack` of ``policies``, or None where they do not stack (of several kinds, gains
+    or task configs, or not a baseline's kind: your own): then each runs its own rows."""
+    try:
+        return stack(policies)
+    except (ValueError, TypeError):
+        return None
+
+
 def make_baseline(name: str, scenario: Any = "nominal", stiffness: Any = None,
                   task: dict[str, Any] | TaskConfig | None = None,
                   params: Params = DEFAULT_PARAMS, gains: dict[str, float] | None = None

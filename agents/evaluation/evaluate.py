@@ -51,7 +51,8 @@ import gymnasium as gym
 import numpy as np
 
 import mpa_gym  # noqa: F401
-from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy, stack
+from mpa_gym.agents.controllers import baselines
+from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy
 from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import (
     CHOSEN,
@@ -141,7 +142,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
            for spec in policies if loads_per_scenario(spec)}
     stacked = {spec: st for spec, ps in own.items()
-               if (st := _stacked([p for p, _, _ in ps])) is not None} if batched else {}
+               if (st := baselines.stacked([p for p, _, _ in ps])) is not None} if batched else {}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
     try:
         # a supervisor's start on each scenario, chosen on its model (select.choose_starts),
@@ -175,15 +176,6 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
                                 [spec_label(p) for p in policies if p not in BASELINES])
     report["summary"] = summary(report)
     return report
-
-
-def _stacked(policies: list[Policy]) -> Policy | None:
-    """One controller for the scenarios' rows (``baselines.stack``), or None where the class
-    cannot be stacked (your own, not a baseline's kind): then each scenario's runs its rows."""
-    try:
-        return stack(policies)
-    except (ValueError, TypeError):
-        return None
 
 
 def _once(flag: str, labels: list[str], given: list[Any]) -> None:

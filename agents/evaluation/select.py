@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from mpa_gym.agents.controllers.baselines import stack
+from mpa_gym.agents.controllers.baselines import stacked
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, score_mm, trace_metrics
 from mpa_gym.agents.learned.config import EVAL_SEED
@@ -74,12 +74,9 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
     # config; each row its own plan, with the numbers its own controller gives): one call per
     # step for the fallbacks of every scenario, cell or rig, not one per policy loaded
     for idx in later.values():
-        try:
-            one = stack([jobs[j].policy for j in idx])
-        except (ValueError, TypeError):  # of several kinds, or not a baseline: one by one
-            continue
-        for j in idx:
-            jobs[j] = dataclasses.replace(jobs[j], policy=one)
+        if (one := stacked([jobs[j].policy for j in idx])) is not None:
+            for j in idx:
+                jobs[j] = dataclasses.replace(jobs[j], policy=one)
     out: list[list[float] | None] = [None] * len(loaded)
     if jobs:
         for i, tr in zip(owners, run_episodes(jobs, MODEL_SEED), strict=True):
