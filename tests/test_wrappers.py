@@ -63,36 +63,6 @@ def test_harmonic_integrals_are_fourier_coefficients_over_a_period():
                                 0.0, 0.0, 0.0, 0.0, 0.0], rtol=0, atol=INTEGRAL_ATOL)
 
 
-def test_the_gate_weights_each_pairs_step_and_not_the_static_integral():
-    # harmonic_gate_m δ: I_0 takes e dt, each pair e · basis(hφ) · dt / (1 + (e/δ)²). The
-    # errors: a start's 20 mm transient decaying over 0.3 s on a 0.1 mm periodic error, over
-    # one period. Reference sums from the same float32 inputs the kernel reads (sin 2φ =
-    # 2 s c, cos 2φ = c² − s² of the observed s, c: the kernel's recurrence).
-    T, n, gate = 3.0, 300, 1e-3
-    front = Frontend(FeatureSpec(harmonics=2, limit_m_s=1.0, harmonic_gate_m=gate), None, T / n)
-    plain = Frontend(FeatureSpec(harmonics=2, limit_m_s=1.0), None, T / n)
-    state, ungated = new_state(1), new_state(1)
-    want = np.zeros(5)
-    for i in range(n):
-        t, phi = i * T / n, 2 * np.pi * i / n
-        obs = _error_obs(20e-3 * np.exp(-t / 0.3) + 0.1e-3 * np.sin(phi + 0.4), phi)
-        front.observe(obs, state, False)
-        plain.observe(obs, ungated, False)
-        e = np.float64(obs[0, 2])
-        s, c = np.float64(obs[0, 4]), np.float64(obs[0, 5])
-        w = 1.0 / (1.0 + (e / gate) ** 2)
-        want += e * T / n * np.array([1.0, s * w, c * w, 2 * s * c * w, (c * c - s * s) * w])
-    np.testing.assert_allclose(state["integ"][0, :5], want, rtol=0, atol=INTEGRAL_ATOL)
-    assert state["integ"][0, 0] == ungated["integ"][0, 0]  # I_0: not gated
-    # what it is for: the transient A e^(-t/τ) charges a pair by at most ∫ |e| w dt =
-    # δ τ atan(A/δ) gated (substitute u = e/δ), against A τ (20 x more here) ungated; the
-    # periodic error adds at most its own c T/2
-    bound = gate * 0.3 * np.arctan(20e-3 / gate) + 0.1e-3 * T / 2
-    assert np.hypot(*state["integ"][0, 1:3]) <= bound
-    assert np.hypot(*state["integ"][0, 3:5]) <= bound
-    assert np.hypot(*ungated["integ"][0, 1:3]) > 5 * bound
-
-
 def test_remodulated_integrals_are_the_resonant_output_and_its_quadrature():
     # after integrating e = c1 sin φ + c2 cos φ over one period T, (I_s1, I_c1) = (c1, c2) T/2,
     # so the remodulated pair is R(φ) = I_s1 sin φ + I_c1 cos φ = (T/2) e(φ), in phase with the
@@ -139,10 +109,6 @@ def test_feature_and_map_misuse_is_named():
         FeatureSpec(remodulate=True)
     with pytest.raises(ValueError, match=r"errors_only=1 must be true or false"):
         FeatureSpec(errors_only=1)
-    with pytest.raises(ValueError, match=r"harmonic_gate_m=0\.001 needs harmonics >= 1"):
-        FeatureSpec(harmonic_gate_m=1e-3)
-    with pytest.raises(ValueError, match=r"harmonic_gate_m=0\.5 m is outside .* \(0, 0\.1\] m"):
-        FeatureSpec(harmonics=1, harmonic_gate_m=0.5)
     # the map needs X̂ and k̂: over errors-only features it takes them from the observation
     # wrapper beneath, and says so when another wrapper sits in between, whatever the width
     for feats in ({"errors_only": True},

@@ -23,12 +23,7 @@ each clipped to ±``limit_m_s`` (anti-windup), φ the reference phase the env ob
 PID's integrator; the harmonic pairs are the internal model of a periodic reference (a resonant
 controller's integrators): they hold whatever periodic correction the plant needs, so a policy can
 cancel a periodic error — and the in-phase part, a force error that follows X̂ − X_0, is a
-stiffness error the policy can correct. ``harmonic_gate_m`` δ weights each pair's step by
-1 / (1 + (e / δ)²), as the stiffness estimator weights its updates (below): a periodic error
-of a tenth of δ integrates at 0.99 of the rate, while a start's or a kick's transient
-A e^(−t/τ) charges a pair by at most δ τ atan(A/δ) instead of A τ, a charge that the policy
-would otherwise unwind over many periods (the pairs model the periodic error, not the
-transient); I_0 is not gated. ``mask_pressures`` zeroes the measured pressures (the
+stiffness error the policy can correct. ``mask_pressures`` zeroes the measured pressures (the
 layout stays): they echo the policy's own last command, and a policy that learned to overdrive
 lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
 action the env was last given instead, the other way to tell the command from the lag;
@@ -130,9 +125,6 @@ class FeatureSpec:
     # append the rig's regulator dead time and lag [s] (the plant's in training; identified
     # or nominal when deployed: Frontend.known_delay_s)
     delay_observation: bool = False
-    # [m] weight each harmonic pair's update by 1 / (1 + (e / this)²): a start's or a kick's
-    # transient barely charges the internal model (module docstring); None: weight 1
-    harmonic_gate_m: float | None = None
 
     def __post_init__(self) -> None:
         lim = self.limit_m_s
@@ -159,13 +151,6 @@ class FeatureSpec:
         if self.remodulate and not self.harmonics:
             raise ValueError("remodulate=True needs harmonics >= 1 (it remodulates their "
                              "integrals)")
-        if self.harmonic_gate_m is not None:
-            object.__setattr__(self, "harmonic_gate_m", check_range(
-                "harmonic_gate_m", self.harmonic_gate_m, 0.0, 0.1, low_open=True, unit="m",
-                note="or null: no gate"))
-            if not self.harmonics:
-                raise ValueError(f"harmonic_gate_m={self.harmonic_gate_m:g} needs harmonics "
-                                 ">= 1 (it weights their integrals' updates)")
 
     @property
     def n_integrals(self) -> int:
@@ -275,7 +260,6 @@ SETTINGS = np.dtype([
     ("mask_pressures", np.bool_),
     ("fine_error", np.bool_),  # fine_error_m is not None
     ("fine_error_m", np.float64),
-    ("harmonic_gate_m", np.float64),  # [m] FeatureSpec.harmonic_gate_m; 0: no gate
     ("delay_observation", np.bool_),
     ("errors_only", np.bool_),
     ("remodulate", np.bool_),
@@ -303,7 +287,6 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
             r[name] = getattr(features, name)
         r["fine_error"] = features.fine_error_m is not None
         r["fine_error_m"] = features.fine_error_m or 0.0
-        r["harmonic_gate_m"] = features.harmonic_gate_m or 0.0
     if action is not None:
         if residual_scale_bar is None:
             raise ValueError("a force–stiffness action map needs residual_scale_bar (the "
@@ -356,16 +339,14 @@ def observe_row(raw, st, fresh, cfg, feat):
     m = 1 + 2 * h_max
     e = raw[OXR] - raw[OX]
     s1, c1 = raw[OSIN], raw[OCOS]
-    if not fresh:  # I ← clip(I + e · basis(φ) · dt, ±limit); the pairs' step gated
+    if not fresh:  # I ← clip(I + e · basis(φ) · dt, ±limit)
         dt = cfg.dt_s
         st.integ[0] = min(max(st.integ[0] + e * 1.0 * dt, -lim), lim)
-        g = cfg.harmonic_gate_m
-        dth = dt / (1.0 + (e / g) ** 2) if g > 0.0 else dt
         zr, zi = 1.0, 0.0
         for h in range(h_max):
             zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
-            st.integ[1 + 2 * h] = min(max(st.integ[1 + 2 * h] + e * zi * dth, -lim), lim)
-            st.integ[2 + 2 * h] = min(max(st.integ[2 + 2 * h] + e * zr * dth, -lim), lim)
+            st.integ[1 + 2 * h] = min(max(st.integ[1 + 2 * h] + e * zi * dt, -lim), lim)
+            st.integ[2 + 2 * h] = min(max(st.integ[2 + 2 * h] + e * zr * dt, -lim), lim)
     n = 0
     if not cfg.errors_only:
         for i in range(raw.shape[0]):
