@@ -63,36 +63,6 @@ def test_harmonic_integrals_are_fourier_coefficients_over_a_period():
                                 0.0, 0.0, 0.0, 0.0, 0.0], rtol=0, atol=INTEGRAL_ATOL)
 
 
-def test_the_pairs_hold_while_a_muscle_is_at_its_lower_bound():
-    # saturation_hold_bar p: a step whose observation shows either measured pressure below p
-    # leaves the harmonic pairs as they are (conditional integration: a muscle at 0 bar cannot
-    # apply their correction); I_0 integrates every step. Over one period with the flexor
-    # at 0 bar on a known set of steps, each pair is the Fourier sum over the other steps.
-    T, n, hold = 3.0, 300, 0.05
-    front = Frontend(FeatureSpec(harmonics=2, limit_m_s=1.0, saturation_hold_bar=hold), None,
-                     T / n)
-    state, unheld = new_state(1), new_state(1)
-    full = Frontend(FeatureSpec(harmonics=2, limit_m_s=1.0), None, T / n)
-    want = np.zeros(5)
-    rng = np.random.default_rng(3)
-    for i in range(n):
-        phi = 2 * np.pi * i / n
-        obs = _error_obs(1e-3 * np.sin(2 * phi + 0.3) + 0.4e-3, phi)
-        at_bound = 1.0 * np.pi < phi < 1.6 * np.pi  # the flexor's 0 bar phase, as on kmin
-        obs[0, 6] = 3.0 + rng.uniform(-0.5, 0.5)
-        obs[0, 7] = rng.uniform(0.0, 0.04) if at_bound else rng.uniform(0.06, 2.0)
-        front.observe(obs, state, False)
-        full.observe(obs, unheld, False)
-        e, s, c = (np.float64(obs[0, k]) for k in (2, 4, 5))
-        w = 0.0 if at_bound else 1.0
-        want += e * T / n * np.array([1.0, s * w, c * w, 2 * s * c * w, (c * c - s * s) * w])
-    np.testing.assert_allclose(state["integ"][0, :5], want, rtol=0, atol=INTEGRAL_ATOL)
-    assert state["integ"][0, 0] == unheld["integ"][0, 0]  # I_0 is not held
-    # the held steps are three tenths of the period: without the hold the second pair is
-    # elsewhere by far more than the tolerance
-    assert np.all(np.abs(unheld["integ"][0, 3:5] - want[3:5]) > 1e3 * INTEGRAL_ATOL)
-
-
 def test_remodulated_integrals_are_the_resonant_output_and_its_quadrature():
     # after integrating e = c1 sin φ + c2 cos φ over one period T, (I_s1, I_c1) = (c1, c2) T/2,
     # so the remodulated pair is R(φ) = I_s1 sin φ + I_c1 cos φ = (T/2) e(φ), in phase with the
@@ -139,10 +109,6 @@ def test_feature_and_map_misuse_is_named():
         FeatureSpec(remodulate=True)
     with pytest.raises(ValueError, match=r"errors_only=1 must be true or false"):
         FeatureSpec(errors_only=1)
-    with pytest.raises(ValueError, match=r"saturation_hold_bar=0\.05 needs harmonics >= 1"):
-        FeatureSpec(saturation_hold_bar=0.05)
-    with pytest.raises(ValueError, match=r"saturation_hold_bar=2 bar is outside .* \(0, 1\] bar"):
-        FeatureSpec(harmonics=1, saturation_hold_bar=2.0)
     # the map needs X̂ and k̂: over errors-only features it takes them from the observation
     # wrapper beneath, and says so when another wrapper sits in between, whatever the width
     for feats in ({"errors_only": True},

@@ -23,15 +23,10 @@ each clipped to ±``limit_m_s`` (anti-windup), φ the reference phase the env ob
 PID's integrator; the harmonic pairs are the internal model of a periodic reference (a resonant
 controller's integrators): they hold whatever periodic correction the plant needs, so a policy can
 cancel a periodic error — and the in-phase part, a force error that follows X̂ − X_0, is a
-stiffness error the policy can correct. ``saturation_hold_bar`` p holds the pairs on a step whose
-measured pressures show a muscle below p: a muscle at its lower bound (0 bar, where the paper's
-kmin design runs its flexor for part of each period) cannot apply their correction, so the
-error they would integrate there only winds them up (conditional integration, the classical
-anti-windup; the ``limit_m_s`` clip bounds the integrals but not this). ``mask_pressures``
-zeroes the measured pressures (the layout stays): they echo the policy's own last command, and
-a policy that learned to overdrive lagging regulators through them chatters on a lag-free one.
-``previous_action`` appends the action the env was last given instead, the other way to tell
-the command from the lag;
+stiffness error the policy can correct. ``mask_pressures`` zeroes the measured pressures (the
+layout stays): they echo the policy's own last command, and a policy that learned to overdrive
+lagging regulators through them chatters on a lag-free one. ``previous_action`` appends the
+action the env was last given instead, the other way to tell the command from the lag;
 ``action_history`` H appends the last H actions the env was given, newest first: with a
 regulator dead time and lag, the commands of the last (dead time + lag) / dt steps are still
 on their way to the muscles, and a delayed loop is an undelayed one whose state holds the
@@ -130,9 +125,6 @@ class FeatureSpec:
     # append the rig's regulator dead time and lag [s] (the plant's in training; identified
     # or nominal when deployed: Frontend.known_delay_s)
     delay_observation: bool = False
-    # [bar] the harmonic pairs hold while a measured pressure is below this (a muscle at its
-    # lower bound cannot apply their correction: conditional integration); None: never
-    saturation_hold_bar: float | None = None
 
     def __post_init__(self) -> None:
         lim = self.limit_m_s
@@ -159,13 +151,6 @@ class FeatureSpec:
         if self.remodulate and not self.harmonics:
             raise ValueError("remodulate=True needs harmonics >= 1 (it remodulates their "
                              "integrals)")
-        if self.saturation_hold_bar is not None:
-            object.__setattr__(self, "saturation_hold_bar", check_range(
-                "saturation_hold_bar", self.saturation_hold_bar, 0.0, 1.0, low_open=True,
-                unit="bar", note="or null: never hold"))
-            if not self.harmonics:
-                raise ValueError(f"saturation_hold_bar={self.saturation_hold_bar:g} needs "
-                                 "harmonics >= 1 (it holds their integrals)")
 
     @property
     def n_integrals(self) -> int:
@@ -275,7 +260,6 @@ SETTINGS = np.dtype([
     ("mask_pressures", np.bool_),
     ("fine_error", np.bool_),  # fine_error_m is not None
     ("fine_error_m", np.float64),
-    ("saturation_hold_bar", np.float64),  # [bar] FeatureSpec.saturation_hold_bar; 0: never
     ("delay_observation", np.bool_),
     ("errors_only", np.bool_),
     ("remodulate", np.bool_),
@@ -303,7 +287,6 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
             r[name] = getattr(features, name)
         r["fine_error"] = features.fine_error_m is not None
         r["fine_error_m"] = features.fine_error_m or 0.0
-        r["saturation_hold_bar"] = features.saturation_hold_bar or 0.0
     if action is not None:
         if residual_scale_bar is None:
             raise ValueError("a force–stiffness action map needs residual_scale_bar (the "
@@ -359,13 +342,11 @@ def observe_row(raw, st, fresh, cfg, feat):
     if not fresh:  # I ← clip(I + e · basis(φ) · dt, ±limit)
         dt = cfg.dt_s
         st.integ[0] = min(max(st.integ[0] + e * 1.0 * dt, -lim), lim)
-        hold = cfg.saturation_hold_bar
-        dth = 0.0 if hold > 0.0 and min(raw[OPE], raw[OPF]) < hold else dt
         zr, zi = 1.0, 0.0
         for h in range(h_max):
             zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
-            st.integ[1 + 2 * h] = min(max(st.integ[1 + 2 * h] + e * zi * dth, -lim), lim)
-            st.integ[2 + 2 * h] = min(max(st.integ[2 + 2 * h] + e * zr * dth, -lim), lim)
+            st.integ[1 + 2 * h] = min(max(st.integ[1 + 2 * h] + e * zi * dt, -lim), lim)
+            st.integ[2 + 2 * h] = min(max(st.integ[2 + 2 * h] + e * zr * dt, -lim), lim)
     n = 0
     if not cfg.errors_only:
         for i in range(raw.shape[0]):
