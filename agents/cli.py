@@ -402,6 +402,7 @@ def show_evaluate(o: dict[str, Any]) -> str:
         for ctrl, a in rr["audit"].items():
             extra += (f"\n  {ctrl}: supervised within {rr['ratio']:g}x the better of the policy "
                       f"alone and the best classical on {a['supervised_within']:.0%} of the rigs"
+                      f" (undominated, with stiffness, on {a['supervised_undominated']:.0%})"
                       + ("" if a["alone_within_pid"] is None else
                          f", the policy alone within {rr['ratio']:g}x pid on "
                          f"{a['alone_within_pid']:.0%}")
@@ -695,9 +696,11 @@ def show_rollout(o: dict[str, Any]) -> str:
                      f"{lag * 1e3:g} ms (scenario {o['scenario']!r}'s plant; roll out with the "
                      "scenario `mpa-gym identify --out` wrote for this rig to tell it the rig's)")
     if o.get("predicted_mm"):  # the supervisor's start, chosen on the scenario's plant
+        pct = o.get("predicted_stiffness_pct") or {}
         lines.append("predicted on the model (scenario " + repr(o["scenario"]) + "'s plant), "
-                     "position RMSE [mm]: " + ", ".join(
-                         f"{c} {'unstable' if v is None else f'{v:.3f}'}"
+                     "position RMSE [mm]" + (" / stiffness RMSE [%]" if pct else "") + ": "
+                     + ", ".join(f"{c} " + ("unstable" if v is None else f"{v:.3f}" + (
+                         f" / {pct[c]:.2f}" if pct.get(c) is not None else ""))
                          for c, v in o["predicted_mm"].items()))
     for i, m in enumerate(o["episodes"]):
         lines.append(f"episode {i}: position RMSE {m['position_rmse_mm']:.3f} mm, max "

@@ -65,6 +65,40 @@ def _rig(i: int, **mm: float | None) -> dict:
             "fallback_s": 9.8 if c == handed else None} for c, v in mm.items()}}
 
 
+def _rig2(i: int, **fig: tuple[float, float] | None) -> dict:
+    """A rig record with the given (position RMSE [mm], stiffness RMSE [%]) (None: unstable)."""
+    return {"rig": i, "controllers": {
+        c: {"position_rmse_mm": None if v is None else v[0],
+            "stiffness_rmse_pct": None if v is None else v[1], "unstable": v is None,
+            "terminated": False, "fallback_s": None} for c, v in fig.items()}}
+
+
+def test_the_undominated_share_counts_a_better_reference_only_if_not_worse_on_stiffness():
+    # The residual task tracks position and stiffness: a baseline over the ratio better on
+    # position but over the ratio worse on stiffness breaks the position-only bound, not the
+    # undominated one; one better on position and within the ratio on stiffness breaks both.
+    per_rig = [
+        # offnominal.yaml's figures (CHANGELOG, issue 36): the policy kept, rc better on
+        # position and 1.74x worse on stiffness
+        _rig2(0, s=(0.753, 8.1), a=(0.753, 8.1), pid=(2.46, 12.8), rc=(0.481, 14.1)),
+        # rc better on position, its stiffness within the ratio (9.7 <= 1.2 x 8.1 = 9.72)
+        _rig2(1, s=(0.753, 8.1), a=(0.753, 8.1), pid=(2.46, 12.8), rc=(0.481, 9.7)),
+        # just over the ratio on stiffness (9.73 > 9.72)
+        _rig2(2, s=(0.753, 8.1), a=(0.753, 8.1), pid=(2.46, 12.8), rc=(0.481, 9.73)),
+        # the supervised loop unstable: anything stable is better on both
+        _rig2(3, s=None, a=None, pid=(2.46, 30.0), rc=None),
+        # rc chosen and driving: the policy alone is worse on position, better on stiffness
+        _rig2(4, s=(0.48, 14.1), a=(0.753, 8.1), pid=(2.46, 12.8), rc=(0.48, 14.1)),
+    ]
+    a = _audit(per_rig, "s", "a", ["s", "a", "pid", "rc"])
+    assert [b["rig"] for b in a["broken"]] == [0, 1, 2, 3]
+    assert [d["rig"] for d in a["dominated"]] == [1, 3]
+    assert a["dominated"][0] == {"rig": 1, "supervised_mm": 0.753, "supervised_pct": 8.1,
+                                 "by": {"rc": [0.481, 9.7]}}
+    assert a["dominated"][1]["by"] == {"pid": [2.46, 30.0]}
+    assert a["supervised_within"] == 1 / 5 and a["supervised_undominated"] == 3 / 5
+
+
 def test_the_audit_flags_a_hand_over_to_a_worse_fallback_and_counts_the_policy_against_pid():
     per_rig = [
         # the issue's case: a policy tracking at 0.4 mm handed to pid at 2 mm
@@ -81,6 +115,8 @@ def test_the_audit_flags_a_hand_over_to_a_worse_fallback_and_counts_the_policy_a
     assert [b["rig"] for b in a["broken"]] == [0]
     assert a["broken"][0] == {"rig": 0, "supervised_mm": 2.0, "alone_mm": 0.4, "best_mm": 0.4}
     assert a["supervised_within"] == 3 / 4
+    # without stiffness figures the undominated share is the position-only one
+    assert [d["rig"] for d in a["dominated"]] == [0]
     assert a["alone_within_pid"] == 3 / 4  # rig 1's unstable policy is the one not within
     assert a["hand_overs"] == [0, 1]
     # the bound's edges: exactly the ratio passes, above it fails; the floor holds under it

@@ -33,6 +33,7 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episode,
     run_episodes,
     score_mm,
+    score_stiffness_pct,
     trace_metrics,
 )
 from mpa_gym.agents.evaluation.rigs import random_rigs
@@ -45,7 +46,7 @@ from mpa_gym.agents.evaluation.robustness import (
     robustness,
     run_batches,
 )
-from mpa_gym.agents.evaluation.select import MODEL_SEED, choose_starts, model_of
+from mpa_gym.agents.evaluation.select import MODEL_SEED, choose_starts, model_of, predict
 from mpa_gym.agents.learned.policies import ALONE, known_delays, load_policy
 from mpa_gym.agents.rig.rollout import read_log, rollout
 from mpa_gym.agents.training.train import train
@@ -75,16 +76,46 @@ SLOW = {"pressure_dead_time_s": 0.03, "pressure_lag_s": 0.04, "extra_mass_kg": 0
 ])
 def test_the_policy_starts_unless_a_later_stage_is_predicted_better_by_the_ratio(
         predicted, start):
-    assert Selection(1.2).start(predicted) == start
+    assert Selection(1.2, stiffness_ratio=None).start(predicted) == start
+    # stiffness figures that block nothing (every stage's alike) change no start
+    assert Selection(1.2, 1.0).start(predicted, [2.0] * len(predicted)) == start
+
+
+@pytest.mark.parametrize("mm, pct, start", [
+    ([0.75, 0.48], [8.1, 14.1], POLICY),  # rc better on position, 1.7x worse on stiffness
+    ([0.75, 0.48], [8.1, 8.9], FALLBACK),  # 8.9 <= 1.1 x 8.1
+    ([0.75, 0.48], [8.1, 8.92], POLICY),  # 8.92 > 1.1 x 8.1 = 8.91
+    ([0.75, 0.48], [8.1, 5.0], FALLBACK),  # better on both
+    # the fallback blocked on stiffness, the last resort not: the best stage that passes both
+    ([0.75, 0.40, 0.60], [8.1, 14.0, 8.0], LAST_RESORT),
+    ([0.75, 0.40, 0.50], [8.1, 8.0, 8.0], FALLBACK),  # both pass: the better on position
+    ([INF, 3.0], [INF, 30.0], FALLBACK),  # the policy unstable: it tracks no stiffness either
+    ([INF, INF, 2.0], [INF, INF, 30.0], LAST_RESORT),
+    ([0.75, 0.75], [8.1, 1.0], POLICY),  # better stiffness alone is no reason
+])
+def test_with_a_stiffness_ratio_a_later_stage_starts_only_if_not_worse_on_stiffness(
+        mm, pct, start):
+    # The residual task tracks position and stiffness (Eq. 23): a stage predicted better on
+    # position but more than stiffness_ratio x worse on stiffness is no improvement to start
+    # at. (The first two rows are offnominal.yaml's figures, CHANGELOG issue 36.)
+    assert Selection(1.1, 1.1).start(mm, pct) == start
 
 
 def test_a_start_needs_a_figure_per_stage():
     with pytest.raises(ValueError, match=r"one figure per stage, at least two stages"):
         Selection().start([0.5])
+    with pytest.raises(ValueError, match=r"supervisor.select.stiffness_ratio=1.1 needs one "
+                                         r"figure per stage \(2\)"):
+        Selection(1.1, 1.1).start([0.5, 0.4])
+    with pytest.raises(ValueError, match=r"supervisor.select.stiffness_ratio.*0.9.*\[1"):
+        Selection(1.1, 0.9)
     sup = Supervised(Wobbly(), make_baseline("rc"), DT, 3.0, SupervisorSpec(),
                      make_baseline("pid"))
     with pytest.raises(ValueError, match=r"one figure per stage \(3\)"):
         sup.choose([0.5, 0.4])
+    with pytest.raises(ValueError, match=r"predicted_stiffness_pct=\[1.0\]: one figure per "
+                                         r"stage \(3\)"):
+        sup.choose([0.5, 0.4, 0.3], [1.0])
 
 
 class Wobbly:
@@ -104,7 +135,7 @@ def test_a_loop_started_at_a_fallback_drives_exactly_as_that_fallback_alone(star
     predicted = [INF, 0.3, 0.5] if start == FALLBACK else [INF, INF, 0.3]
     sup = Supervised(Wobbly(), make_baseline("rc", sc), DT, sc.reference.period,
                      SupervisorSpec(), make_baseline("pid", sc))
-    assert sup.choose(predicted) == start
+    assert sup.choose(predicted, [INF if v == INF else 5.0 for v in predicted]) == start
     ref = make_baseline(alone, sc)
     got, want = run_episodes([Job(sc, sup, "MPALegResidual-v0", {}, plant=SLOW, seed=11),
                               Job(sc, ref, "MPALegResidual-v0", {}, plant=SLOW, seed=11)], 11)
@@ -129,12 +160,45 @@ def test_a_monitor_tripping_on_the_first_step_is_a_hand_over_not_a_choice():
     spec = SupervisorSpec((Divergence(1e-3, 0.5, None, 0),),
                           (Stage("policy", ("divergence",)), Stage("rc")))
     sup = Supervised(Wobbly(), make_baseline("rc", sc), DT, sc.reference.period, spec)
-    assert sup.choose([0.4, 0.39]) == POLICY
+    assert sup.choose([0.4, 0.39], [3.0, 3.0]) == POLICY
     (tr,) = run_episodes([Job(sc, sup, "MPALegResidual-v0", {}, plant=SLOW, seed=3)], 3)
     assert tr.start == POLICY and np.all(tr.fallback == FALLBACK)
     m = trace_metrics(tr, sc.reference.period)
     assert m["chosen"] is None and handed_over(m) and m["fallback_s"] == pytest.approx(tr.t[0])
     assert hand_overs(m, ["policy", "rc"]) == f"rc from {tr.t[0]:.1f} s; policy 0 % of steps"
+
+
+@pytest.mark.parametrize("level_mm", [0.3, 2.0, 5.0, 100.0])
+def test_a_policy_its_monitors_hand_over_on_the_model_is_predicted_to_fail(level_mm):
+    # The supervisor's monitors replayed over the policy's episode alone (first_trips, from
+    # the errors the policy observed) hand over at the very step the live supervised loop,
+    # started at the policy, does (levels whose trips fall 5-20 steps in, and one that never
+    # trips): up to a hand-over that loop is the policy's own, action for action. A policy
+    # handed over on the model scores inf on both figures and a fallback predicted finite is
+    # chosen; one never handed over scores its own episode's figures.
+    sc = load_scenario("nominal")
+    spec = SupervisorSpec((Divergence(level_mm, 0.5, None, 0),),
+                          (Stage("policy", ("divergence",)), Stage("rc")))
+    sup = Supervised(Wobbly(), make_baseline("rc", sc), DT, sc.reference.period, spec)
+    ((mm, pct),) = predict([(sup, "MPALegResidual-v0", None)], [sc], [SLOW])
+    assert sup.start == POLICY  # predicting chooses nothing
+    env = gym.make("MPALegResidual-v0", scenario=model_of(sc))
+    alone = run_episode(env, Wobbly(), MODEL_SEED, options={"plant": SLOW})
+    watched = run_episode(env, sup, MODEL_SEED, options={"plant": SLOW})
+    env.close()
+    took = np.flatnonzero(watched.fallback)
+    (step,) = sup.first_trips(alone.observed_error[:, None])
+    assert step == (took[0] if took.size else -1)
+    upto = took[0] if took.size else len(alone.x)
+    np.testing.assert_array_equal(watched.x[:upto], alone.x[:upto])
+    if took.size:
+        assert mm[0] == pct[0] == INF and math.isfinite(mm[1])
+        assert sup.choose(mm, pct) == FALLBACK
+    else:
+        assert level_mm == 100.0  # the others trip (the replay's step is checked above)
+        m = trace_metrics(alone, sc.reference.period)
+        assert mm[0] == pytest.approx(score_mm(m), rel=1e-12)
+        assert pct[0] == pytest.approx(score_stiffness_pct(m), rel=1e-12)
 
 
 @pytest.fixture(scope="module")
@@ -148,25 +212,39 @@ def run(tmp_path_factory):
 def test_the_prediction_is_each_stage_alone_on_the_model_through_the_single_env(run):
     # What choose_starts predicts (one batch of the vector env) is what each stage's
     # controller scores alone on the scenario's model through a single env of its own, the
-    # kick the scenario holds left out; the start follows from those figures.
+    # kick the scenario holds left out (position, and the stiffness RMSE recomputed here from
+    # the trace's last three periods); the start follows from those figures.
     sc = load_scenario("impulse")
     assert sc.disturbances and model_of(sc).disturbances == ()
     loaded = load_policy(str(run), {"scenario": sc})
     (predicted,) = choose_starts([loaded], [sc], [SLOW])
     sup, _, cfg = loaded
-    assert sup.start == sup.spec.select.start(predicted) and sup.predicted_mm == predicted
+    mm, pct = predicted
+    assert sup.start == sup.spec.select.start(mm, pct)
+    assert sup.predicted_mm == mm and sup.predicted_stiffness_pct == pct
     alone = load_policy(str(run) + ALONE, {"scenario": sc})[0]
     # the later stages as the supervisor builds them: the run's task settings, its gains
     task = cfg.env_kwargs.get("task")
     controllers = [alone] + [make_baseline(s.controller, sc, None, task,
                                            gains=sup.spec.gains.get(s.controller))
                              for s in sup.spec.stages[1:]]
-    for ctrl, want in zip(controllers, predicted, strict=True):
+    # the policy is predicted under its monitors: failing (inf) where they hand it over
+    env = gym.make("MPALegResidual-v0", scenario=model_of(sc), task=eval_task(cfg))
+    watched = run_episode(env, load_policy(str(run), {"scenario": sc})[0], MODEL_SEED,
+                          options={"plant": SLOW})
+    env.close()
+    if watched.fallback.any():
+        assert mm[0] == pct[0] == INF
+        controllers, mm, pct = controllers[1:], mm[1:], pct[1:]
+    for ctrl, want_mm, want_pct in zip(controllers, mm, pct, strict=True):
         env = gym.make("MPALegResidual-v0", scenario=model_of(sc), task=eval_task(cfg))
         tr = run_episode(env, ctrl, MODEL_SEED, options={"plant": SLOW})
         env.close()
         assert score_mm(trace_metrics(tr, sc.reference.period)) == pytest.approx(
-            want, rel=1e-9)
+            want_mm, rel=1e-9)
+        n = 3 * round(sc.reference.period / DT)  # the last three periods' samples
+        ek = (tr.k[-n:] - tr.k_ref[-n:]) / tr.k_ref[-n:]
+        assert want_pct == pytest.approx(100 * np.sqrt(np.mean(ek**2)), rel=1e-12)
     # a policy without a supervisor, or whose supervisor does not select, chooses nothing
     assert choose_starts([load_policy(str(run) + ALONE, {"scenario": sc})], [sc], [None]) == [None]
     with pytest.raises(ValueError, match=r"1 policies, 2 scenarios and 1 plants"):
@@ -179,8 +257,6 @@ def test_predicting_many_at_once_is_predicting_each_alone(run):
     # reference periods (rc's delay line is a period long) and plants of their own
     import dataclasses
 
-    from mpa_gym.agents.evaluation.select import predict
-
     heldout = load_scenario("heldout_a")
     fast = dataclasses.replace(heldout, name="fast", reference=dataclasses.replace(
         heldout.reference, period=2.0))
@@ -190,8 +266,9 @@ def test_predicting_many_at_once_is_predicting_each_alone(run):
                         [sc for sc, _ in cases], [p for _, p in cases])
     for (sc, plant), figures in zip(cases, together, strict=True):
         (alone,) = predict([load_policy(str(run), {"scenario": sc})], [sc], [plant])
-        assert len(figures) == 3 and figures == alone, (sc.name, figures, alone)
-    assert len({tuple(f) for f in together}) == len(cases)  # three plants, three figures
+        assert len(figures[0]) == len(figures[1]) == 3 and figures == alone, (
+            sc.name, figures, alone)
+    assert len({tuple(f[0]) for f in together}) == len(cases)  # three plants, three figures
 
 
 @REALTIME
@@ -205,9 +282,13 @@ def test_a_rollout_chooses_its_start_on_the_scenario_and_says_so(run, tmp_path):
         out = rollout(str(run), emu.url, log, scenario=rig, episode_s=6.0)
     stages = out["stages"]
     assert list(out["predicted_mm"]) == stages == ["policy", "rc", "pid"]
-    start = SupervisorSpec().select.start(list(out["predicted_mm"].values()))
+    assert list(out["predicted_stiffness_pct"]) == stages
+    start = SupervisorSpec().select.start(*([INF if v is None else v for v in f.values()]
+                                            for f in (out["predicted_mm"],
+                                                      out["predicted_stiffness_pct"])))
     (event,) = [r for r in read_log(log) if r.get("event") == "chosen"]
     assert event["start"] == stages[start] and event["predicted_mm"] == out["predicted_mm"]
+    assert event["predicted_stiffness_pct"] == out["predicted_stiffness_pct"]
     steps = [r for r in read_log(log) if "reward" in r]
     assert steps[0]["fallback"] == start
     ep = out["episodes"][0]
@@ -256,7 +337,7 @@ def test_the_sweep_starts_each_cell_where_its_figures_say(run, monkeypatch):
     forced = [[0.1, 0.2, 0.3], [INF, 0.2, 0.3], [0.5, 0.4, 0.1], [0.5, 0.1, 0.4],
               [0.2, 0.3, 0.3]]
     monkeypatch.setattr(robustness_module, "predict",
-                        lambda loaded, scenarios, plants: [list(f) for f in forced])
+                        lambda loaded, scenarios, plants: [(list(f), [5.0] * 3) for f in forced])
     sc = _scenario(load_scenario("nominal"), "cells", {})
     jobs = plant_jobs(str(run), sc, plants, 5)
     assert [j.policy.start for j in jobs] == [POLICY, FALLBACK, LAST_RESORT, FALLBACK, POLICY]
@@ -277,12 +358,13 @@ def test_a_rollout_started_at_its_fallback_says_so_at_every_step(run, tmp_path, 
     # process playing a slow, loaded rig, rc drives every step from its rest state, the log
     # says so before the first step, and the summary never calls it a hand-over.
     monkeypatch.setattr(rollout_module, "choose_starts",
-                        lambda loaded, scenarios, plants: [[INF, 0.3, 0.5]])
+                        lambda loaded, scenarios, plants: [([INF, 0.3, 0.5], [INF, 9.0, 9.0])])
     rig = {"name": "slow_rig", "duration_s": 4.0, "plant": SLOW}
     log = tmp_path / "r.jsonl"
     with EmulatorProcess(rig) as emu:
         out = rollout(str(run), emu.url, log, scenario=rig, episode_s=4.0)
     assert out["predicted_mm"] == {"policy": None, "rc": 0.3, "pid": 0.5}
+    assert out["predicted_stiffness_pct"] == {"policy": None, "rc": 9.0, "pid": 9.0}
     records = read_log(log)
     (event,) = [r for r in records if r.get("event") == "chosen"]
     assert event["start"] == "rc" and event["predicted_mm"] == out["predicted_mm"]
@@ -292,5 +374,6 @@ def test_a_rollout_started_at_its_fallback_says_so_at_every_step(run, tmp_path, 
     assert ep["chosen"] == "fallback" and ep["policy_share"] == 0.0
     assert ep["hand_overs"] == "rc chosen on the model; policy 0 % of steps"
     text = show_rollout(out)
-    assert "policy unstable, rc 0.300, pid 0.500" in text
+    assert ("position RMSE [mm] / stiffness RMSE [%]: policy unstable, rc 0.300 / 9.00, "
+            "pid 0.500 / 9.00") in text
     assert "hand-over: rc chosen on the model" in text

@@ -549,10 +549,14 @@ DEFAULT_STAGES_CFG = [{"controller": "policy", "monitors": ["divergence", "limit
      r"\['gains', 'monitors', 'select', 'stages'\]"),
     ({"stages": DEFAULT_STAGES_CFG, "select": {"ratio": 0.5}},
      r"supervisor\.select\.ratio=0\.5 is outside the allowed range \[1, 10\]"),
+    ({"stages": DEFAULT_STAGES_CFG, "select": {"stiffness_ratio": 0.5}},
+     r"supervisor\.select\.stiffness_ratio=0\.5 is outside the allowed range \[1, 10\]"),
     ({"stages": DEFAULT_STAGES_CFG, "select": {"margin": 1.5}},
-     r"supervisor\.select: unknown key\(s\) \['margin'\]; allowed keys are \['ratio'\]"),
+     r"supervisor\.select: unknown key\(s\) \['margin'\]; allowed keys are \['ratio', "
+     r"'stiffness_ratio'\]"),
     ({"stages": DEFAULT_STAGES_CFG, "select": 1.5},
-     r"supervisor\.select=1\.5 must be null or a mapping with keys among \['ratio'\]"),
+     r"supervisor\.select=1\.5 must be null or a mapping with keys among "
+     r"\['ratio', 'stiffness_ratio'\]"),
 ])
 def test_config_names_the_bad_field_of_a_declared_supervisor(tmp_path, bad, match):
     with pytest.raises(ConfigError, match=r"mpa_gym\." + match):
@@ -577,13 +581,17 @@ def test_config_declared_supervisor_states_only_what_differs(tmp_path):
     assert "in pid's loop (given 1 period(s) to settle)" in text
     assert text.endswith("; the loop starts at the stage predicted best on the model (each "
                          "stage's controller alone), the policy unless another is predicted "
-                         "over 1.1x better (figures below 0.05 mm alike)")
+                         "over 1.1x better on position and no more than 1.1x worse on "
+                         "stiffness (position figures below 0.05 mm alike)")
     two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})
     assert two.supervisor.last_resort is None and two.supervisor.fallback == "mbfb"
     # the start chosen on the model: the default's ratio, another, or never (null)
     assert two.supervisor.select == Selection(1.1)
     assert _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": {"ratio": 1.5}}
-                   ).supervisor.select == Selection(1.5)
+                   ).supervisor.select == Selection(1.5, 1.1)
+    alone = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG,
+                               "select": {"stiffness_ratio": None}}).supervisor.select
+    assert alone == Selection(1.1, None) and "stiffness" not in alone.describe()
     off = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": None}).supervisor
     assert off.select is None and "predicted" not in off.describe()
 

@@ -47,11 +47,14 @@ state.
 
 Where the spec has a ``select`` (``Selection``), the stage every episode starts at is chosen
 before it, on the model: each stage's controller alone is simulated on the scenario's plant
-(``mpa_gym.agents.evaluation.select``) and the policy starts unless a later stage is predicted
-better by more than its ratio (``Supervised.choose``). Monitors that fire on instability alone
-cannot see a stable loop that its fallback would track better, and hand an unstable one over
-too late for it to settle; the model sees both before the first step. A chosen stage starts
-from its rest state and is reported as chosen (``who_drove``'s ``chosen``), not as a hand-over.
+(``mpa_gym.agents.evaluation.select``; the policy under its monitors, failing where they hand
+it over) and the policy starts unless a later stage is predicted better on position by more
+than its ratio without being worse on stiffness by more than its stiffness ratio
+(``Supervised.choose``; the residual task tracks both). Monitors that fire on instability
+alone cannot see a stable loop that its fallback would track better, and hand an unstable one
+over too late for it to settle; the model sees both before the first step. A chosen stage
+starts from its rest state and is reported as chosen (``who_drove``'s ``chosen``), not as a
+hand-over.
 
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
 rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage, and
@@ -230,31 +233,55 @@ class Selection:
     """How the stage the loop starts at is chosen before the episode: every stage's controller
     alone is simulated on the model (``mpa_gym.agents.evaluation.select``: the scenario's plant,
     the rig's as ``mpa-gym identify`` wrote it) and scored as a report scores it; the policy
-    starts unless a later stage is predicted better by more than ``ratio`` (then the best
-    predicted stage starts, and its monitors and the cascade after it stay as declared), a
-    figure below ``NOISE_FLOOR_MM`` counting as that floor (sensor noise)."""
+    starts unless a later stage is predicted better by more than ``ratio`` on position and, with
+    a ``stiffness_ratio``, no more than that ratio worse on stiffness (then the best such stage
+    starts, and its monitors and the cascade after it stay as declared), a position figure
+    below ``NOISE_FLOOR_MM`` counting as that floor (sensor noise)."""
 
     ratio: float = 1.1  # the policy starts unless its predicted RMSE exceeds ratio x the best
+    # a later stage starts only if its predicted stiffness RMSE is at most this x the policy's
+    # (the residual task tracks both); None: chosen on position alone
+    stiffness_ratio: float | None = 1.1
 
     def __post_init__(self) -> None:
         check_range("supervisor.select.ratio", self.ratio, 1.0, RATIO_MAX)
+        if self.stiffness_ratio is not None:
+            check_range("supervisor.select.stiffness_ratio", self.stiffness_ratio, 1.0,
+                        RATIO_MAX)
 
-    def start(self, predicted_mm: list[float]) -> int:
-        """The stage to start at from each stage's predicted position RMSE [mm] (inf: unstable
-        or terminated on the model), in cascade order: ``POLICY`` unless a later stage's is
-        below the policy's / ratio, else the best such stage (the earliest of equals); each
-        figure raised to ``NOISE_FLOOR_MM`` first (below it, noise tells them apart)."""
+    def start(self, predicted_mm: list[float],
+              predicted_stiffness_pct: list[float] | None = None) -> int:
+        """The stage to start at from each stage's predicted position RMSE [mm] and stiffness
+        RMSE [%] (inf: unstable or terminated on the model), in cascade order: ``POLICY``
+        unless a later stage's position figure is below the policy's / ratio (and, with a
+        ``stiffness_ratio``, its stiffness figure at most stiffness_ratio x the policy's), else
+        the best such stage on position (the earliest of equals); each position figure raised
+        to ``NOISE_FLOOR_MM`` first (below it, noise tells them apart)."""
         if len(predicted_mm) < 2:
             raise ValueError(f"predicted_mm={predicted_mm!r}: one figure per stage, at least "
                              "two stages")
         mm = np.maximum(np.asarray(predicted_mm, dtype=float), NOISE_FLOOR_MM)
-        best = int(np.argmin(mm[1:])) + 1
-        return best if self.ratio * mm[best] < mm[POLICY] else POLICY
+        better = self.ratio * mm < mm[POLICY]
+        if self.stiffness_ratio is not None:
+            if predicted_stiffness_pct is None or len(predicted_stiffness_pct) != len(mm):
+                raise ValueError(f"predicted_stiffness_pct={predicted_stiffness_pct!r}: "
+                                 f"supervisor.select.stiffness_ratio={self.stiffness_ratio:g} "
+                                 f"needs one figure per stage ({len(mm)})")
+            st = np.asarray(predicted_stiffness_pct, dtype=float)
+            better &= st <= self.stiffness_ratio * st[POLICY]  # inf <= inf: policy unstable
+        better[POLICY] = False
+        if not better.any():
+            return POLICY
+        return int(np.argmin(np.where(better, mm, np.inf)))
 
     def describe(self) -> str:
+        stiffness = ("" if self.stiffness_ratio is None else
+                     f" on position and no more than {self.stiffness_ratio:g}x worse on "
+                     "stiffness")
         return (f"the loop starts at the stage predicted best on the model (each stage's "
                 f"controller alone), the policy unless another is predicted over "
-                f"{self.ratio:g}x better (figures below {NOISE_FLOOR_MM:g} mm alike)")
+                f"{self.ratio:g}x better{stiffness} (position figures below "
+                f"{NOISE_FLOOR_MM:g} mm alike)")
 
 
 DEFAULT_MONITORS = (Divergence(), LimitCycle(), Persistent())
@@ -522,17 +549,23 @@ class Supervised:
         self.grace_steps = np.array([s.grace_periods * N for s in spec.stages])
         # the stage every episode starts at, and what it was chosen on: ``spec.select``'s
         # choice, made by mpa_gym.agents.evaluation.select.choose_starts (``POLICY``: not made)
-        self.start, self.predicted_mm = POLICY, None
+        self.start, self.predicted_mm, self.predicted_stiffness_pct = POLICY, None, None
 
-    def choose(self, predicted_mm: list[float]) -> int:
+    def choose(self, predicted_mm: list[float],
+               predicted_stiffness_pct: list[float] | None = None) -> int:
         """Start every episode at the stage ``spec.select`` chooses from each stage's predicted
-        position RMSE [mm] on the model (``Selection.start``); the policy without a select."""
-        if len(predicted_mm) != len(self.spec.stages):
-            raise ValueError(f"predicted_mm={predicted_mm!r}: one figure per stage "
-                             f"({len(self.spec.stages)})")
+        position RMSE [mm] and stiffness RMSE [%] on the model (``Selection.start``); the
+        policy without a select."""
+        for name, figures in (("predicted_mm", predicted_mm),
+                              ("predicted_stiffness_pct", predicted_stiffness_pct)):
+            if figures is not None and len(figures) != len(self.spec.stages):
+                raise ValueError(f"{name}={figures!r}: one figure per stage "
+                                 f"({len(self.spec.stages)})")
         self.predicted_mm = [float(v) for v in predicted_mm]
+        self.predicted_stiffness_pct = (None if predicted_stiffness_pct is None else
+                                        [float(v) for v in predicted_stiffness_pct])
         self.start = POLICY if self.spec.select is None else self.spec.select.start(
-            self.predicted_mm)
+            self.predicted_mm, self.predicted_stiffness_pct)
         return self.start
 
     def predict(self, observation: np.ndarray, state: Any = None,
@@ -549,21 +582,8 @@ class Supervised:
         if episode_start is not None:
             mon.restart(np.asarray(episode_start, dtype=bool).reshape(-1), self.start)
         before, k, r = mon.stage.copy(), mon.step.copy(), np.arange(n)
-        e = rows[:, OXR] - rows[:, OX]
         slot = k % N
-        past = mon.errors[r, slot]  # e one period ago (zero within the first)
-        age = k - mon.since  # steps into the stage
-        tripped = np.zeros((n, len(self.spec.monitors)), dtype=bool)
-        for j, m in enumerate(self.spec.monitors):
-            mon.mean_sq[m.name] = m.update(mon.mean_sq[m.name], e, past,
-                                           age >= m.arm_periods * N, self.dt)
-            tripped[:, j] = m.tripped(mon.mean_sq[m.name])
-        mon.errors[r, slot] = e
-        trip = (tripped & self.judges[before]).any(axis=1) & (age >= self.grace_steps[before])
-        mon.stage = before + trip  # the last stage has no monitors: it never trips
-        for name in mon.mean_sq:  # the new stage's loop is judged on its own
-            mon.mean_sq[name][trip] = 0.0
-        mon.since[trip] = k[trip] + 1
+        self._judge(mon, rows[:, OXR] - rows[:, OX])
 
         a, inner = self.policy.predict(observation, state.policy, episode_start, deterministic)
         a2 = np.atleast_2d(a)
@@ -595,6 +615,45 @@ class Supervised:
             out = np.where(at[:, None], np.atleast_2d(b), out)
         out = out.astype(np.float32)
         return (out[0] if single else out), SupervisedState(inner, tuple(states), mon)
+
+    def _judge(self, mon: MonitorState, e: np.ndarray) -> None:
+        """One step of the monitors on each row's observed error ``e`` = X̂ − X [m]: every
+        monitor's running mean, ``e`` kept for a period, and the rows whose stage's monitors
+        trip (past its grace) moved to the next stage, judged afresh from the next step.
+        ``mon.step`` is the step being judged (the caller advances it)."""
+        N, k, r = self.n_period, mon.step, np.arange(len(e))
+        before, slot = mon.stage.copy(), k % N
+        past = mon.errors[r, slot]  # e one period ago (zero within the first)
+        age = k - mon.since  # steps into the stage
+        tripped = np.zeros((len(e), len(self.spec.monitors)), dtype=bool)
+        for j, m in enumerate(self.spec.monitors):
+            mon.mean_sq[m.name] = m.update(mon.mean_sq[m.name], e, past,
+                                           age >= m.arm_periods * N, self.dt)
+            tripped[:, j] = m.tripped(mon.mean_sq[m.name])
+        mon.errors[r, slot] = e
+        trip = (tripped & self.judges[before]).any(axis=1) & (age >= self.grace_steps[before])
+        mon.stage = before + trip  # the last stage has no monitors: it never trips
+        for name in mon.mean_sq:  # the new stage's loop is judged on its own
+            mon.mean_sq[name][trip] = 0.0
+        mon.since[trip] = k[trip] + 1
+
+    def first_trips(self, errors: np.ndarray) -> np.ndarray:
+        """The monitors of a loop started at the policy, replayed over ``errors`` (steps, n):
+        the observed error X̂ − X [m] the policy was given at each step of n episodes it drove
+        alone. Per episode, the first step at which this supervisor would hand over (−1:
+        never). Up to that step a supervised loop started at the policy is the policy's own,
+        action for action, so it is where that loop hands over (``predict``'s monitors, the
+        same code)."""
+        steps, n = errors.shape
+        mon = MonitorState.zeros(n, self.spec.monitors, self.n_period, POLICY)
+        out = np.full(n, -1, dtype=np.int64)
+        for k in range(steps):
+            self._judge(mon, errors[k])
+            out[(out < 0) & (mon.stage > POLICY)] = k
+            mon.step += 1
+            if (out >= 0).all():
+                break
+        return out
 
     def held(self, mon: MonitorState) -> np.ndarray:
         """(n, 2) per row, the mean of the policy's actions over the last reference period (or

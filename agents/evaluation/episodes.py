@@ -29,7 +29,7 @@ import numpy as np
 from mpa_gym.agents.controllers.baselines import Policy
 from mpa_gym.agents.controllers.supervisor import took_over, who_drove
 from mpa_gym.analysis.simulate import METRIC_PERIODS, metric_window, whole_periods
-from mpa_gym.task.contract import SAFETY_CLIPPED
+from mpa_gym.task.contract import OBS_X, OBS_XREF, SAFETY_CLIPPED
 
 RECOVERY_BAND_M = 1e-3  # [m] recovered: |X − X̂| stays below this
 # [mm] a loop is unstable when the RMS of its error less the error's mean period over the
@@ -77,6 +77,8 @@ class Trace:
     terminated: bool
     fallback: np.ndarray | None = None  # per step, a supervisor's stage (``took_over``)
     start: int = 0  # the stage a supervisor started at (``Supervised.start``: chosen on a model)
+    # [m] per step, the error X̂ − X the controller observed before it (its observation's)
+    observed_error: np.ndarray | None = None
 
 
 @dataclass
@@ -160,9 +162,12 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
         steps: list[list[dict[str, np.ndarray]]] = [[] for _ in envs]  # per group, per step
         rewards: list[list[np.ndarray]] = [[] for _ in envs]
         stages: list[np.ndarray] = []  # per step, every job's supervisor stage
+        observed: list[list[np.ndarray]] = [[] for _ in envs]  # per group, per step: X̂ − X
         supervised = np.zeros(n, dtype=bool)
         first = True
         while live.any():
+            for g, obs in enumerate(obs_of):
+                observed[g].append(obs[:, OBS_XREF] - obs[:, OBS_X])
             for pid, idx in by_policy.items():
                 batch = np.stack([obs_of[where[i][0]][where[i][1]] for i in idx])
                 start = np.full(len(idx), first)
@@ -202,6 +207,7 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
     for g, idx in enumerate(rows_of):
         cols = {k: np.stack([s[k] for s in steps[g]]) for k in _RECORDED}
         rew = np.stack(rewards[g])
+        seen = np.stack(observed[g])
         for r, i in enumerate(idx):
             m = length[i]
             c = {k: v[:m, r] for k, v in cols.items()}
@@ -210,14 +216,17 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
                            c["pressure_cmd_bar"], (c["safety"] & SAFETY_CLIPPED) > 0,
                            rew[:m, r], bool(terminated[i]),
                            all_stages[:m, i].astype(np.int64) if supervised[i] else None,
-                           getattr(jobs[i].policy, "start", 0) if supervised[i] else 0)
+                           getattr(jobs[i].policy, "start", 0) if supervised[i] else 0,
+                           seen[:m, r].astype(float))
     return out
 
 
 def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list[dict[str, Any]]:
     """The robustness sweep's metrics (``mpa_gym.agents.evaluation.robustness``' docstring) for
     each leg of ``run_batch``'s output: position and aperiodic RMSE over the last three
-    reference periods, ``unstable``, ``terminated`` and who drove."""
+    reference periods, ``unstable``, ``terminated`` and who drove; where ``run`` has the
+    stiffness and its reference (``k``, ``k_ref``), the stiffness RMSE [%] over that window
+    (``stiffness_rmse_pct``, as :func:`metrics`)."""
     per = round(period_s / dt)
     e = run["x"] - run["x_ref"]
     out = []
@@ -225,22 +234,28 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
         n = int(run["steps"][i]) if "steps" in run else len(run["t"])  # the leg's own steps
         took = who_drove(run["t"][:n], run["fallback"][:n, i] if "fallback" in run else None,
                          int(run["start"][i]) if "start" in run else 0)
+        stiffness = {"stiffness_rmse_pct": None} if "k" in run else {}
         if run["terminated"][i] or e.shape[0] < METRIC_PERIODS * per:
             out.append({"position_rmse_mm": None, "aperiodic_rmse_mm": None, "unstable": True,
-                        "terminated": bool(run["terminated"][i]), **took})
+                        "terminated": bool(run["terminated"][i]), **stiffness, **took})
             continue
-        w = e[whole_periods(run["t"], period_s), i].reshape(METRIC_PERIODS, per)
+        window = whole_periods(run["t"], period_s)
+        w = e[window, i].reshape(METRIC_PERIODS, per)
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
+        if stiffness:
+            ek = (run["k"][window, i] - run["k_ref"][window, i]) / run["k_ref"][window, i]
+            stiffness["stiffness_rmse_pct"] = float(np.sqrt(np.mean(ek**2)) * 100)
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
                     "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
-                    "terminated": False, **took})
+                    "terminated": False, **stiffness, **took})
     return out
 
 
 def trace_metrics(tr: Trace, period_s: float) -> dict[str, Any]:
     """:func:`cell_metrics` of one episode's trace."""
     run = {"t": tr.t, "x": tr.x[:, None], "x_ref": tr.x_ref[:, None],
+           "k": tr.k[:, None], "k_ref": tr.k_ref[:, None],
            "terminated": np.array([tr.terminated]), "steps": np.array([len(tr.t)]),
            "fallback": (np.zeros((len(tr.t), 1), dtype=np.int8) if tr.fallback is None
                         else tr.fallback[:, None]), "start": np.array([tr.start])}
@@ -249,7 +264,17 @@ def trace_metrics(tr: Trace, period_s: float) -> dict[str, Any]:
 
 def score_mm(m: dict[str, Any]) -> float:
     """[mm] a cell's position RMSE; inf where the loop was unstable or terminated."""
-    v = m.get("position_rmse_mm")
+    return _score(m, "position_rmse_mm")
+
+
+def score_stiffness_pct(m: dict[str, Any]) -> float:
+    """[%] a cell's stiffness RMSE (:func:`trace_metrics`); inf where the loop was unstable or
+    terminated (it tracks no stiffness then)."""
+    return _score(m, "stiffness_rmse_pct")
+
+
+def _score(m: dict[str, Any], key: str) -> float:
+    v = m.get(key)
     return math.inf if m.get("unstable") or m.get("terminated") or v is None else float(v)
 
 

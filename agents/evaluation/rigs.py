@@ -7,7 +7,8 @@ says how), each with a reference period drawn from ``PERIOD_S``, one episode of 
 ``duration_s`` per rig and controller (the rig's number ``i`` is its episode seed's offset, so
 a rig is the same plant and noise for every controller). Per rig and controller, over the last
 three reference periods as in the sweep (``robustness.cell_metrics``): ``position_rmse_mm``,
-``unstable`` and who drove. A terminated or unstable episode counts as infinitely bad below.
+``stiffness_rmse_pct``, ``unstable`` and who drove. A terminated or unstable episode counts as
+infinitely bad on both below.
 
 The audit, for each learned run (``ratio`` = ``RIG_RATIO``, every bound raised to
 ``robustness.HARM_FLOOR_MM``, below which sensor noise decides):
@@ -17,6 +18,11 @@ The audit, for each learned run (``ratio`` = ``RIG_RATIO``, every bound raised t
   the better of the policy alone and the best classical baseline evaluated (``CLASSICAL``), the
   rigs that break it listed: a supervisor that hands a good loop to a worse fallback shows
   here, and so does one that keeps a failing policy;
+- ``supervised_undominated``: the share of rigs on which none of those references tracks
+  position over ratio × better than the supervised loop without also tracking stiffness
+  within ratio × its error (the residual task tracks both), the rigs that break it listed
+  (``dominated``): a supervisor that keeps its policy where a baseline is better on position
+  but worse on stiffness passes this and not the position-only share;
 - ``hand_overs``: the rigs on which a monitor handed the loop to the supervisor's fallback;
 - ``chosen``: the rigs on which a fallback drove from the start, chosen on the rig's model
   (``mpa_gym.agents.evaluation.select``; the model is the rig's plant, as ``mpa-gym identify``
@@ -33,7 +39,14 @@ import numpy as np
 
 from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import handed_over
-from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, score_mm, trace_metrics
+from mpa_gym.agents.evaluation.episodes import (
+    Job,
+    eval_task,
+    run_episodes,
+    score_mm,
+    score_stiffness_pct,
+    trace_metrics,
+)
 from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
 from mpa_gym.agents.evaluation.select import choose_starts
 from mpa_gym.agents.learned.config import EVAL_SEED
@@ -107,8 +120,10 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     out: dict[str, Any] = {"n": n, "seed": seed, "episode_seed": episode_seed,
                            "file": RIGS_FILE.name, "period_s": list(PERIOD_S),
                            "ratio": RIG_RATIO, "floor_mm": HARM_FLOOR_MM, "rigs": per_rig}
-    out["median_mm"] = {lab: _median([r["controllers"][lab] for r in per_rig])
+    out["median_mm"] = {lab: _median([r["controllers"][lab] for r in per_rig], score_mm)
                         for lab in labels}
+    out["median_stiffness_pct"] = {lab: _median([r["controllers"][lab] for r in per_rig],
+                                                score_stiffness_pct) for lab in labels}
     out["unstable"] = {lab: sum(r["controllers"][lab]["unstable"] for r in per_rig)
                        for lab in labels}
     out["audit"] = {spec_label(p): _audit(per_rig, spec_label(p), spec_label(p + ALONE),
@@ -116,8 +131,8 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     return out
 
 
-def _median(ms: list[dict[str, Any]]) -> float | None:
-    v = float(np.median([score_mm(m) for m in ms]))
+def _median(ms: list[dict[str, Any]], score: Any) -> float | None:
+    v = float(np.median([score(m) for m in ms]))
     return None if math.isinf(v) else v
 
 
@@ -128,13 +143,23 @@ def _within(x: float, ref: float) -> bool:
 def _audit(per_rig: list[dict[str, Any]], supervised: str, alone: str, labels: list[str]
            ) -> dict[str, Any]:
     classical = [c for c in CLASSICAL if c in labels]
-    broken, near_pid, hand_overs, chosen = [], 0, [], []
+    broken, dominated, near_pid, hand_overs, chosen = [], [], 0, [], []
     for r in per_rig:
         c = r["controllers"]
         best = min([score_mm(c[alone])] + [score_mm(c[b]) for b in classical])
-        if not _within(score_mm(c[supervised]), best):
-            broken.append({"rig": r["rig"], "supervised_mm": _finite(score_mm(c[supervised])),
+        mm, pct = score_mm(c[supervised]), score_stiffness_pct(c[supervised])
+        if not _within(mm, best):
+            broken.append({"rig": r["rig"], "supervised_mm": _finite(mm),
                            "alone_mm": _finite(score_mm(c[alone])), "best_mm": _finite(best)})
+        # the references better on position that are not worse on stiffness (inf <= inf: the
+        # supervised loop unstable tracks no stiffness)
+        over = [b for b in [alone, *classical] if not _within(mm, score_mm(c[b]))
+                and score_stiffness_pct(c[b]) <= RIG_RATIO * pct]
+        if over:
+            dominated.append({"rig": r["rig"], "supervised_mm": _finite(mm),
+                              "supervised_pct": _finite(pct), "by": {
+                                  b: [score_mm(c[b]), _finite(score_stiffness_pct(c[b]))]
+                                  for b in over}})
         if "pid" in c:
             near_pid += _within(score_mm(c[alone]), score_mm(c["pid"]))
         if handed_over(c[supervised]):
@@ -145,6 +170,7 @@ def _audit(per_rig: list[dict[str, Any]], supervised: str, alone: str, labels: l
     return {"alone": alone, "classical": classical,
             "alone_within_pid": near_pid / n if "pid" in labels else None,
             "supervised_within": (n - len(broken)) / n, "broken": broken,
+            "supervised_undominated": (n - len(dominated)) / n, "dominated": dominated,
             "hand_overs": hand_overs, "chosen": chosen}
 
 
@@ -158,17 +184,19 @@ def markdown(rr: dict[str, Any]) -> list[str]:
     out = ["## Random rigs", "",
            f"{rr['n']} plants drawn from `configs/rigs/{rr['file']}` (seed {rr['seed']}), "
            f"reference periods {rr['period_s'][0]:g}–{rr['period_s'][1]:g} s: position RMSE "
-           "[mm] over the last three periods; **unstable** as in the sweep; ‡: the "
-           "supervisor's fallback took over. Audit: the supervised loop within "
+           "[mm] and stiffness RMSE [%] over the last three periods; **unstable** as in the "
+           "sweep; ‡: the supervisor's fallback took over. Audit: the supervised loop within "
            f"{rr['ratio']:g}× the better of the policy alone and the best classical baseline, "
            f"the policy alone within {rr['ratio']:g}× pid (bounds raised to "
-           f"{rr['floor_mm']:g} mm).", ""]
+           f"{rr['floor_mm']:g} mm); undominated: no such reference over {rr['ratio']:g}× "
+           f"better on position and within {rr['ratio']:g}× on stiffness.", ""]
     for ctrl, a in rr["audit"].items():
         pid = ("" if a["alone_within_pid"] is None else
                f"; {a['alone']} within {rr['ratio']:g}× pid on {a['alone_within_pid']:.0%}")
         out.append(f"**{ctrl}**: supervised within {rr['ratio']:g}× the better of "
                    f"{a['alone']} and {', '.join(a['classical']) or 'no baseline'} on "
-                   f"{a['supervised_within']:.0%} of the rigs{pid}; hand-overs on "
+                   f"{a['supervised_within']:.0%} of the rigs, undominated on "
+                   f"{a['supervised_undominated']:.0%}{pid}; hand-overs on "
                    f"{len(a['hand_overs'])} rigs"
                    + (f" (rigs {', '.join(map(str, a['hand_overs']))})" if a["hand_overs"]
                       else "")
@@ -176,6 +204,8 @@ def markdown(rr: dict[str, Any]) -> list[str]:
                       f"{', '.join(map(str, a['chosen']))}" if a.get("chosen") else "") + ".")
     out += ["", "| | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels),
             "| median | " + " | ".join(_mm(rr["median_mm"][lab]) for lab in labels) + " |",
+            "| median stiffness [%] | " + " | ".join(
+                _mm(rr["median_stiffness_pct"][lab], ".2f") for lab in labels) + " |",
             "| unstable | " + " | ".join(str(rr["unstable"][lab]) for lab in labels) + " |", "",
             "| rig | period [s] | plant | " + " | ".join(labels) + " |",
             "|---|---|---|" + "---|" * len(labels)]
@@ -185,7 +215,8 @@ def markdown(rr: dict[str, Any]) -> list[str]:
         for lab in labels:
             m = r["controllers"][lab]
             cell = ("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
-                    + (" **unstable**" if m["unstable"] else ""))
+                    + (" **unstable**" if m["unstable"] else
+                       f" · {m['stiffness_rmse_pct']:.1f} %"))
             cells.append(cell + ("" if m.get("fallback_s") is None else
                                  f" ‡{m['chosen'].replace('_', ' ')} chosen"
                                  if m.get("chosen") else f" ‡{m['fallback_s']:.1f} s"))
@@ -193,6 +224,6 @@ def markdown(rr: dict[str, Any]) -> list[str]:
     return [*out, ""]
 
 
-def _mm(v: float | None) -> str:
-    return "–" if v is None else f"{v:.3f}"
+def _mm(v: float | None, fmt: str = ".3f") -> str:
+    return "–" if v is None else f"{v:{fmt}}"
 

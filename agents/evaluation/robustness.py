@@ -172,13 +172,13 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
         chose: set[int] = set()  # the objects loaded above that already have their start
         for j, (p, figures) in enumerate(zip(plants, predict(loaded, [sc] * len(plants),
                                                                 plants), strict=True)):
-            key = (_delays(p) if tells else None, loaded[j][0].spec.select.start(figures))
+            key = (_delays(p) if tells else None, loaded[j][0].spec.select.start(*figures))
             if key not in started:
                 fresh = id(loaded[j][0]) not in chose
                 started[key] = loaded[j] if fresh else load_for_plant(spec, sc, p, gains)
                 chose.add(id(started[key][0]))
-                # the start the key says (predicted_mm: this group's first plant's figures)
-                started[key][0].choose(figures)
+                # the start the key says (its predicted figures: this group's first plant's)
+                started[key][0].choose(*figures)
             loaded[j] = started[key]
     return [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
             for j, ((policy, env_id, run_cfg), p) in enumerate(zip(loaded, plants, strict=True))]

@@ -204,14 +204,16 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
     supervised = isinstance(policy, Supervised)
     stages = [s.controller for s in run_cfg.supervisor.stages] if supervised else None
     first = POLICY  # the supervisor's stage every episode starts at
-    predicted = None  # {stage: [mm] predicted on the model} where the start was chosen
+    # {stage: [mm]} and {stage: [%]} predicted on the model, where the start was chosen
+    predicted = predicted_pct = None
     if supervised and policy.spec.select is not None:
         model = load_policy(policy_spec, {"scenario": scenario,
                                           "task": {"dt_s": 1.0 / control_hz}}, gains=gains)
-        figures = choose_starts([model], [scenario], [None])[0]
-        first = policy.choose(figures)
-        predicted = {st: (None if math.isinf(v) else v)  # JSON has no infinity: unstable
-                     for st, v in zip(stages, figures, strict=True)}
+        mm, pct = choose_starts([model], [scenario], [None])[0]
+        first = policy.choose(mm, pct)
+        # JSON has no infinity: None is unstable
+        predicted, predicted_pct = ({st: (None if math.isinf(v) else v)
+                                     for st, v in zip(stages, f, strict=True)} for f in (mm, pct))
     task = dict((run_cfg.env_kwargs.get("task") or {}) if run_cfg else {})
     task.pop("dt_s", None)
     task["episode_s"] = episode_s if episode_s is not None else task.get("episode_s")
@@ -234,6 +236,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
                    "episodes": episodes, "seed": seed, "told_delays_s": told})
         if predicted is not None:  # the start chosen on the model, and on what figures
             _write(f, {"event": "chosen", "start": stages[first], "predicted_mm": predicted,
+                       "predicted_stiffness_pct": predicted_pct,
                        "supervisor": run_cfg.supervisor.describe()})
         try:
             pre = preflight(env)
@@ -287,7 +290,7 @@ def rollout(policy_spec: str, device: Any, log_path: str | Path, episodes: int =
             m["hand_overs"] = hand_overs(m, stages)
     out: dict[str, Any] = {
         "episodes": results, "log": str(log_path), "stages": stages, "told_delays_s": told,
-        "predicted_mm": predicted,
+        "predicted_mm": predicted, "predicted_stiffness_pct": predicted_pct,
         "scenario": env.plan.scenario.name,
         "timing": {"control_hz": control_hz, "overruns": env.session_overruns,
                    "steps": len(env.timing["latency_s"]), "realtime": rt_report,
