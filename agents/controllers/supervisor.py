@@ -47,14 +47,14 @@ state.
 
 Where the spec has a ``select`` (``Selection``), the stage every episode starts at is chosen
 before it, on the model: each stage's controller alone is simulated on the scenario's plant
-(``mpa_gym.agents.evaluation.select``; the policy under its monitors, failing where they hand
-it over) and the policy starts unless a later stage is predicted better on position by more
-than its ratio without being worse on stiffness by more than its stiffness ratio
-(``Supervised.choose``; the residual task tracks both). Monitors that fire on instability
-alone cannot see a stable loop that its fallback would track better, and hand an unstable one
-over too late for it to settle; the model sees both before the first step. A chosen stage
-starts from its rest state and is reported as chosen (``who_drove``'s ``chosen``), not as a
-hand-over.
+(``mpa_gym.agents.evaluation.select``; the policy failing where its monitors, replayed over
+its episode, would hand it over) and the policy starts unless a later stage is predicted better
+on position by more than its ratio without being worse on stiffness by more than its
+stiffness ratio (``Supervised.choose``; the residual task tracks both). Monitors that fire on
+instability alone cannot see a stable loop that its fallback would track better, and hand an
+unstable one over too late for it to settle; the model sees both before the first step. A
+chosen stage starts from its rest state and is reported as chosen (``who_drove``'s
+``chosen``), not as a hand-over.
 
 ``Supervised`` has the ``predict`` of every controller, so evaluation, the robustness sweep and
 rig rollouts run it unchanged; ``took_over(policy, state)`` gives each row's stage, and

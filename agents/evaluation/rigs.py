@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -131,7 +132,8 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     return out
 
 
-def _median(ms: list[dict[str, Any]], score: Any) -> float | None:
+def _median(ms: list[dict[str, Any]], score: Callable[[dict[str, Any]], float]
+            ) -> float | None:
     v = float(np.median([score(m) for m in ms]))
     return None if math.isinf(v) else v
 
@@ -216,6 +218,7 @@ def markdown(rr: dict[str, Any]) -> list[str]:
             m = r["controllers"][lab]
             cell = ("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
                     + (" **unstable**" if m["unstable"] else
+                       "" if m.get("stiffness_rmse_pct") is None else
                        f" · {m['stiffness_rmse_pct']:.1f} %"))
             cells.append(cell + ("" if m.get("fallback_s") is None else
                                  f" ‡{m['chosen'].replace('_', ' ')} chosen"
