@@ -218,7 +218,6 @@ def markdown(rr: dict[str, Any]) -> list[str]:
             m = r["controllers"][lab]
             cell = ("terminated" if m["terminated"] else f"{m['position_rmse_mm']:.3f}"
                     + (" **unstable**" if m["unstable"] else
-                       "" if m.get("stiffness_rmse_pct") is None else
                        f" · {m['stiffness_rmse_pct']:.1f} %"))
             cells.append(cell + ("" if m.get("fallback_s") is None else
                                  f" ‡{m['chosen'].replace('_', ' ')} chosen"
