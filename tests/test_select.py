@@ -201,6 +201,34 @@ def test_a_policy_its_monitors_hand_over_on_the_model_is_predicted_to_fail(level
         assert pct[0] == pytest.approx(score_stiffness_pct(m), rel=1e-12)
 
 
+def test_episodes_replayed_together_hand_over_as_each_replayed_alone():
+    # _handed_over replays the episodes of supervisors that judge alike as one batch, the
+    # shorter ones padded. A 4 mm error that repeats with the reference never trips the
+    # limit-cycle monitor; 30 s of it beside 40 s episodes must not trip on the padding
+    # (zeros after its end make the one-period change −e). An error at another period trips,
+    # alone and in the batch.
+    from types import SimpleNamespace
+
+    from mpa_gym.agents.controllers.supervisor import LimitCycle
+    from mpa_gym.agents.evaluation.select import _handed_over
+
+    sc = load_scenario("nominal")
+    period = sc.reference.period
+    spec = SupervisorSpec((LimitCycle(2.0, 3.0, None, 2),),
+                          (Stage("policy", ("limit_cycle",)), Stage("rc")))
+    sups = [Supervised(Wobbly(), make_baseline("rc", sc), DT, period, spec) for _ in range(3)]
+    t = np.arange(4000) * DT
+    errors = [4e-3 * np.sin(2 * np.pi * t[:3000] / period),  # 30 s, periodic
+              4e-3 * np.sin(2 * np.pi * t / period),  # 40 s, periodic
+              4e-3 * np.sin(2 * np.pi * t / (0.57 * period))]  # 40 s, another period
+    alone = [sups[0].first_trips(e[:, None])[0] for e in errors]
+    assert alone[0] == alone[1] == -1 and 0 < alone[2] < 4000
+    traces = [SimpleNamespace(observed_error=e) for e in errors]
+    handed = _handed_over({id(s): s for s in sups}, {id(s): [j] for j, s in enumerate(sups)},
+                          traces)
+    assert handed == {2}
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A tiny trained run of the default config (its supervisor chooses its start)."""

@@ -167,7 +167,8 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
         first = True
         while live.any():
             for g, obs in enumerate(obs_of):
-                observed[g].append(obs[:, OBS_XREF] - obs[:, OBS_X])
+                o = np.asarray(obs, dtype=np.float64)  # as Supervised.predict takes it
+                observed[g].append(o[:, OBS_XREF] - o[:, OBS_X])
             for pid, idx in by_policy.items():
                 batch = np.stack([obs_of[where[i][0]][where[i][1]] for i in idx])
                 start = np.full(len(idx), first)

@@ -18,11 +18,11 @@ The audit, for each learned run (``ratio`` = ``RIG_RATIO``, every bound raised t
   the better of the policy alone and the best classical baseline evaluated (``CLASSICAL``), the
   rigs that break it listed: a supervisor that hands a good loop to a worse fallback shows
   here, and so does one that keeps a failing policy;
-- ``supervised_undominated``: the share of rigs on which none of those references tracks
-  position over ratio × better than the supervised loop without also tracking stiffness
-  within ratio × its error (the residual task tracks both), the rigs that break it listed
-  (``dominated``): a supervisor that keeps its policy where a baseline is better on position
-  but worse on stiffness passes this and not the position-only share;
+- ``supervised_undominated``: the share of rigs on which none of those references both tracks
+  position over ratio × better than the supervised loop and tracks stiffness within ratio ×
+  its error (the residual task tracks both), the rigs where one does listed (``dominated``):
+  a supervisor that keeps its policy where a baseline is better on position but over ratio ×
+  worse on stiffness passes this and not the position-only share;
 - ``hand_overs``: the rigs on which a monitor handed the loop to the supervisor's fallback;
 - ``chosen``: the rigs on which a fallback drove from the start, chosen on the rig's model
   (``mpa_gym.agents.evaluation.select``; the model is the rig's plant, as ``mpa-gym identify``

@@ -129,10 +129,12 @@ def _handed_over(supervisors: dict[int, Supervised], alone: dict[int, list[int]]
     out: set[int] = set()
     for sup, js in groups:
         seen = [traces[j].observed_error for j in js]
-        errors = np.zeros((max(map(len, seen)), len(js)))  # a short (terminated) one: 0 after
+        errors = np.zeros((max(map(len, seen)), len(js)))  # a shorter one: 0 after its end,
         for c, e in enumerate(seen):
             errors[:len(e), c] = e
-        out |= {j for j, step in zip(js, sup.first_trips(errors), strict=True) if step >= 0}
+        # where its trips do not count (zeros are no neutral signal to the limit-cycle monitor)
+        out |= {j for j, e, step in zip(js, seen, sup.first_trips(errors), strict=True)
+                if 0 <= step < len(e)}
     return out
 
 
