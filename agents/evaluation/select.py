@@ -13,11 +13,10 @@ scenario's disturbances (the model does not know the kicks to come) and its rand
 its sensor noise drawn from ``MODEL_SEED`` (no report's episode seed). The supervisor's
 monitors are replayed over the policy's episode: a policy they would hand over on the model
 counts as failing there, since starting at its fallback beats a hand-over late in the
-episode. Each is scored as the sweep scores a
-cell (``cell_metrics``: position and stiffness RMSE over the last three reference periods;
-an unstable or terminated loop, or a policy handed over, is infinitely bad on both) and
-``Supervised.choose`` sets the stage every episode starts at. The episodes of every policy
-given run as one batch.
+episode. Each is scored as the sweep scores a cell (``cell_metrics``: position and stiffness
+RMSE over the last three reference periods; an unstable or terminated loop, or a policy
+handed over, is infinitely bad on both) and ``Supervised.choose`` sets the stage every
+episode starts at. The episodes of every policy given run as one batch.
 
 What was chosen is never hidden: each report row says ``chosen`` (``who_drove``) and its
 ``policy_share``, and a run's ``predicted_mm`` and ``predicted_stiffness_pct`` are kept on the
