@@ -269,7 +269,7 @@ class Selection:
                                  f"needs one figure per stage ({len(mm)})")
             st = np.asarray(predicted_stiffness_pct, dtype=float)
             better &= st <= self.stiffness_ratio * st[POLICY]  # inf <= inf: policy unstable
-        better[POLICY] = False
+        # the policy's own entry is never better (ratio >= 1)
         if not better.any():
             return POLICY
         return int(np.argmin(np.where(better, mm, np.inf)))

@@ -245,12 +245,17 @@ def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list
         rem = w - w.mean(axis=0)
         ap = float(np.sqrt(np.mean(rem**2)) * 1e3)
         if stiffness:
-            ek = (run["k"][window, i] - run["k_ref"][window, i]) / run["k_ref"][window, i]
-            stiffness["stiffness_rmse_pct"] = float(np.sqrt(np.mean(ek**2)) * 100)
+            stiffness["stiffness_rmse_pct"] = stiffness_rmse_pct(run["k"][window, i],
+                                                                 run["k_ref"][window, i])
         out.append({"position_rmse_mm": float(np.sqrt(np.mean(w**2)) * 1e3),
                     "aperiodic_rmse_mm": ap, "unstable": ap > UNSTABLE_APERIODIC_MM,
                     "terminated": False, **stiffness, **took})
     return out
+
+
+def stiffness_rmse_pct(k: np.ndarray, k_ref: np.ndarray) -> float:
+    """[%] the RMS of the relative stiffness error (k − k̂)/k̂ over the samples given."""
+    return float(np.sqrt(np.mean(((k - k_ref) / k_ref) ** 2)) * 100)
 
 
 def trace_metrics(tr: Trace, period_s: float) -> dict[str, Any]:
@@ -283,11 +288,10 @@ def metrics(trace: Trace, period_s: float, impulse_end_s: float | None) -> dict[
     """An episode's figures (``mpa_gym.agents.evaluation.evaluate``'s module docstring)."""
     w = metric_window(trace.t, period_s)
     e = trace.x - trace.x_ref
-    ek = (trace.k - trace.k_ref) / trace.k_ref
     return {
         "position_rmse_mm": float(np.sqrt(np.mean(e[w] ** 2)) * 1e3),
         "position_max_mm": float(np.max(np.abs(e[w])) * 1e3),
-        "stiffness_rmse_pct": float(np.sqrt(np.mean(ek[w] ** 2)) * 100),
+        "stiffness_rmse_pct": stiffness_rmse_pct(trace.k[w], trace.k_ref[w]),
         "saturation_pct": float(np.mean(trace.clipped) * 100),
         "recovery_s": None if impulse_end_s is None else recovery_s(trace.t, e, impulse_end_s),
         "return": float(trace.rewards.sum()),
