@@ -92,6 +92,17 @@ class _PlanPolicy:
     def cfg(self) -> TaskConfig:
         return self.plan.cfg
 
+    @classmethod
+    def stack_rows(cls, policies: list[_PlanPolicy]) -> _PlanPolicy:
+        """:func:`stack`: one set of gains and task config, row i following policy i's plan."""
+        first = policies[0]
+        gains = {k: v for k, v in vars(first).items() if k not in ("plan", "row_plans")}
+        for p in policies:
+            if p.cfg != first.cfg or p.row_plans or \
+                    {k: v for k, v in vars(p).items() if k not in ("plan", "row_plans")} != gains:
+                raise ValueError("stack: controllers of one kind, gains and task config only")
+        return dataclasses.replace(first, row_plans=tuple(p.plan for p in policies))
+
     def _check_rows(self, n: int) -> None:
         if self.row_plans and n != len(self.row_plans):
             raise ValueError(f"a stack of {len(self.row_plans)} controllers got a batch of {n} "
@@ -221,6 +232,11 @@ def _batch(observation: np.ndarray) -> tuple[np.ndarray, bool]:
 
 class ZeroResidual:
     """The feedforward expert: a zero residual applies Eq. (16) / Eq. (25) exactly."""
+
+    @classmethod
+    def stack_rows(cls, policies: list[ZeroResidual]) -> ZeroResidual:
+        """:func:`stack`: zero on every row is one of them."""
+        return policies[0]
 
     def predict(self, observation: np.ndarray, state: Any = None,
                 episode_start: np.ndarray | None = None, deterministic: bool = True
@@ -619,27 +635,24 @@ TUNED_ON = {
 
 
 def stack(policies: list[Policy]) -> Policy:
-    """One controller for a batch whose row i is ``policies[i]``'s (one kind, one set of gains,
-    one task config; each its own scenario plan): a report's scenarios in one call per step,
-    with each row's numbers as its own controller gives them."""
-    first = policies[0]
-    if isinstance(first, ZeroResidual):
-        if not all(isinstance(p, ZeroResidual) for p in policies):
-            raise ValueError("stack: controllers of one kind only")
-        return first
-    if not isinstance(first, _PlanPolicy):
-        raise ValueError(f"stack: {type(first).__name__} is not a baseline")
-    gains = {k: v for k, v in vars(first).items() if k not in ("plan", "row_plans")}
-    for p in policies[1:]:
-        if type(p) is not type(first) or p.cfg != first.cfg or p.row_plans or \
-                {k: v for k, v in vars(p).items() if k not in ("plan", "row_plans")} != gains:
-            raise ValueError("stack: controllers of one kind, gains and task config only")
-    return dataclasses.replace(first, row_plans=tuple(p.plan for p in policies))
+    """One controller for a batch whose row i is ``policies[i]``'s: a report's scenarios, a
+    sweep's cells or a model's plants in one call per step, with each row's numbers as its own
+    controller gives them. The controllers must be of one class that stacks (a
+    ``stack_rows`` classmethod: the baselines here, a learned policy and a supervised one;
+    one kind, gains and task config, each its own plan, delays told or start)."""
+    if not policies:
+        raise ValueError("stack: no controllers")
+    kind = type(policies[0])
+    if not hasattr(kind, "stack_rows"):
+        raise ValueError(f"stack: {kind.__name__} does not stack (no stack_rows)")
+    if any(type(p) is not kind for p in policies):
+        raise ValueError("stack: controllers of one kind only")
+    return kind.stack_rows(policies)
 
 
 def stacked(policies: list[Policy]) -> Policy | None:
     """:func:`stack` of ``policies``, or None where they do not stack (of several kinds, gains
-    or task configs, or not a baseline's kind: your own): then each runs its own rows."""
+    or task configs, or not a kind that stacks: your own): then each runs its own rows."""
     try:
         return stack(policies)
     except (ValueError, TypeError):

@@ -500,7 +500,8 @@ class MonitorState:
     @classmethod
     def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int, start: int = 0
               ) -> MonitorState:
-        return cls(np.full(n, start, dtype=np.int64), np.zeros(n, dtype=np.int64),
+        return cls(np.broadcast_to(np.asarray(start, dtype=np.int64), (n,)).copy(),
+                   np.zeros(n, dtype=np.int64),
                    np.zeros(n, dtype=np.int64), {m.name: np.zeros(n) for m in monitors},
                    np.zeros((n, n_period)), np.zeros((n, 2, n_period)))
 
@@ -509,11 +510,13 @@ class MonitorState:
                             {k: v.copy() for k, v in self.mean_sq.items()},
                             self.errors.copy(), self.actions.copy())
 
-    def restart(self, rows: np.ndarray, start: int = 0) -> None:
-        """A new episode on ``rows``: everything from zero, the stage ``start``."""
+    def restart(self, rows: np.ndarray, start: int | np.ndarray = 0) -> None:
+        """A new episode on ``rows``: everything from zero, the stage ``start`` (one for every
+        row, or each row's)."""
         for a in (self.step, self.since, *self.mean_sq.values(), self.errors, self.actions):
             a[rows] = 0
-        self.stage[rows] = start
+        self.stage[rows] = np.broadcast_to(np.asarray(start, dtype=np.int64),
+                                           self.stage.shape)[rows]
 
 
 class SupervisedState(NamedTuple):
@@ -539,7 +542,7 @@ class Supervised:
                 raise ValueError(f"supervisor.last_resort={spec.last_resort!r} needs its "
                                  f"controller {cls.__name__}, got {type(last).__name__} "
                                  "(mpa_gym.agents.learned.policies.supervise builds it)")
-        self.policy, self.spec, self.dt = policy, spec, dt
+        self.policy, self.spec, self.dt, self.period_s = policy, spec, dt, period_s
         self.controllers = (fallback, last)[:len(spec.stages) - 1]
         self.n_period = max(1, round(period_s / dt))
         N = self.n_period
@@ -548,8 +551,27 @@ class Supervised:
                                 for s in spec.stages], dtype=bool).reshape(len(spec.stages), -1)
         self.grace_steps = np.array([s.grace_periods * N for s in spec.stages])
         # the stage every episode starts at, and what it was chosen on: ``spec.select``'s
-        # choice, made by mpa_gym.agents.evaluation.select.choose_starts (``POLICY``: not made)
+        # choice, made by mpa_gym.agents.evaluation.select.choose_starts (``POLICY``: not made);
+        # in a stack (``stack_rows``) an array, each row's
         self.start, self.predicted_mm, self.predicted_stiffness_pct = POLICY, None, None
+
+    @classmethod
+    def stack_rows(cls, supervisors: list[Supervised]) -> Supervised:
+        """One supervisor for a batch whose row i is ``supervisors[i]``'s
+        (``baselines.stack``): one spec, control period and reference period; its policy and
+        each later stage's controller the stack of theirs, and each row started at its own
+        supervisor's start (chosen on its own model, ``choose``)."""
+        first = supervisors[0]
+        for s in supervisors:
+            if (s.spec, s.dt, s.n_period) != (first.spec, first.dt, first.n_period):
+                raise ValueError("stack: supervisors of one spec, control period and reference "
+                                 "period only")
+        later = [baselines.stack([s.controllers[i] for s in supervisors])
+                 for i in range(len(first.controllers))]
+        out = cls(baselines.stack([s.policy for s in supervisors]), later[0], first.dt,
+                  first.period_s, first.spec, later[1] if len(later) > 1 else None)
+        out.start = np.array([s.start for s in supervisors], dtype=np.int64)
+        return out
 
     def choose(self, predicted_mm: list[float],
                predicted_stiffness_pct: list[float] | None = None) -> int:
@@ -575,6 +597,9 @@ class Supervised:
         single = obs.ndim == 1
         rows = obs.reshape(1, -1) if single else obs
         n, N, later = rows.shape[0], self.n_period, len(self.controllers)
+        if np.ndim(self.start) and len(self.start) != n:
+            raise ValueError(f"a stack of {len(self.start)} supervisors got a batch of {n} "
+                             "observations; row i is supervisor i's")
         if state is None:
             state = SupervisedState(None, (None,) * later, None)
         mon = (MonitorState.zeros(n, self.spec.monitors, N, self.start)

@@ -18,6 +18,7 @@ Metrics are taken over the last three reference periods of an episode
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from mpa_gym.agents.controllers.baselines import Policy
+from mpa_gym.agents.controllers.baselines import Policy, stacked
 from mpa_gym.agents.controllers.supervisor import took_over, who_drove
 from mpa_gym.analysis.simulate import METRIC_PERIODS, metric_window, whole_periods
 from mpa_gym.task.contract import OBS_X, OBS_XREF, SAFETY_CLIPPED
@@ -114,6 +115,20 @@ class _OneRow:
         """The caller's env stays open."""
 
 
+def stack_jobs(jobs: list[Job], groups: list[list[int]]) -> list[Job]:
+    """``jobs`` with the controllers of each group of job indices (ascending) replaced by their
+    stack (``baselines.stack``), where they stack and are more than one object: one call per
+    step for the group, row i its i-th job's controller (its plan, delays told, start)."""
+    out = list(jobs)
+    for idx in groups:
+        if len({id(jobs[j].policy) for j in idx}) < 2:
+            continue
+        if (one := stacked([jobs[j].policy for j in idx])) is not None:
+            for j in idx:
+                out[j] = dataclasses.replace(jobs[j], policy=one)
+    return out
+
+
 def run_episodes(jobs: list[Job], seed: int) -> list[Trace]:
     """Every job's episode at once (module docstring); ``seed`` for jobs without their own."""
     groups: dict[tuple[int, str, str], list[int]] = {}
@@ -152,6 +167,8 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
         by_policy: dict[int, list[int]] = {}
         for i, j in enumerate(jobs):
             by_policy.setdefault(id(j.policy), []).append(i)
+        # each job's row in its policy's batch: a stack's row i is its i-th controller's
+        row_of = {i: k for idx in by_policy.values() for k, i in enumerate(idx)}
         states: dict[int, Any] = dict.fromkeys(by_policy)
         n = len(jobs)
         actions = [np.zeros((len(idx), 2), dtype=np.float32) for idx in rows_of]
@@ -217,9 +234,16 @@ def _run(jobs: list[Job], rows_of: list[list[int]], envs: list[Any], seed: int) 
                            c["pressure_cmd_bar"], (c["safety"] & SAFETY_CLIPPED) > 0,
                            rew[:m, r], bool(terminated[i]),
                            all_stages[:m, i].astype(np.int64) if supervised[i] else None,
-                           getattr(jobs[i].policy, "start", 0) if supervised[i] else 0,
+                           _start(jobs[i].policy, row_of[i]) if supervised[i] else 0,
                            seen[:m, r].astype(float))
     return out
+
+
+def _start(policy: Any, row: int) -> int:
+    """The stage a supervised ``policy`` started row ``row`` of its batch at (a stack's start
+    is each row's)."""
+    start = getattr(policy, "start", 0)
+    return int(start[row] if np.ndim(start) else start)
 
 
 def cell_metrics(run: dict[str, np.ndarray], period_s: float, dt: float) -> list[dict[str, Any]]:

@@ -122,13 +122,15 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
 
     All episodes run as one batch (``mpa_gym.agents.evaluation.episodes.run_episodes``);
     ``batched=False`` runs them one after another
-    (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers. ``plots_dir``: the
+    (``mpa_gym.agents.evaluation.episodes.run_episode``), with the same numbers (a learned
+    policy's to float32 rounding: torch's product over a batch of rows). ``plots_dir``: the
     scenario plots (:func:`plot`) are drawn there while the sweep's worker finishes, rather than by
     :func:`write_report` after it (``report["plots"]``). A supervised run folder is evaluated
     also alone (module docstring). ``gains``: the baselines' gains (``load_gains``'s) where
-    not their defaults. Your own controllers (``module:Class``) are built per scenario like
-    the baselines, and stacked into one batch when their class allows it
-    (``baselines.stack``), else run as one controller per scenario."""
+    not their defaults. The controllers built per scenario (the baselines; a run told each
+    scenario's delays, or whose supervisor starts where each scenario's model says; your own
+    ``module:Class``) run as one stack per controller, one call per step, when their class
+    stacks (``baselines.stack``), else as one controller per scenario."""
     loaded = [load_scenario(s) for s in scenarios]  # every input checked before any episode
     _once("--scenarios", [sc.name for sc in loaded], scenarios)
     _once("--policy", [spec_label(p) for p in policies], policies)
@@ -141,8 +143,6 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     # plan; batched, one stack of them per baseline
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
            for spec in policies if loads_per_scenario(spec)}
-    stacked = {spec: st for spec, ps in own.items()
-               if (st := baselines.stacked([p for p, _, _ in ps])) is not None} if batched else {}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
     try:
         # a supervisor's start on each scenario, chosen on its model (select.choose_starts),
@@ -151,6 +151,11 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         choose_starts([p for spec in supervised for p in own[spec]],
                       [sc for _ in supervised for sc in loaded],
                       [None] * len(supervised) * len(loaded))
+        # batched, each spec's per-scenario controllers as one stack (a learned run's told
+        # each scenario's delays, its supervisor started where chosen)
+        stacked = {spec: st for spec, ps in own.items()
+                   if (st := baselines.stacked([p for p, _, _ in ps])) is not None
+                   } if batched else {}
         report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
                                   batched)
         if random_rigs:
@@ -202,8 +207,8 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
             if spec in learned:
                 policy, env_id, run_cfg = learned[spec]
             else:
-                policy, env_id, run_cfg = ((stacked[spec], "MPALegResidual-v0", None)
-                                           if spec in stacked else own[spec][k])
+                policy, env_id, run_cfg = own[spec][k]
+                policy = stacked.get(spec, policy)
             jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
             keys.append((sc, spec_label(spec)))
     if batched:

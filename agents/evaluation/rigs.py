@@ -46,6 +46,7 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episodes,
     score_mm,
     score_stiffness_pct,
+    stack_jobs,
     trace_metrics,
 )
 from mpa_gym.agents.evaluation.robustness import HARM_FLOOR_MM
@@ -110,6 +111,10 @@ def random_rigs(policies: list[str], n: int, seed: int = RIGS_SEED, episode_seed
     # a supervisor's start, chosen on each rig's model (its plant, as identify would write it)
     if chosen:
         choose_starts([c[0] for c in chosen], [c[1] for c in chosen], [c[2] for c in chosen])
+    # each controller's rigs as one stack where it stacks (not a supervisor: its monitors
+    # hold one reference period, and the rigs' differ)
+    jobs = stack_jobs(jobs, [list(range(k, len(jobs), len(policies)))
+                             for k in range(len(policies))])
     traces = run_episodes(jobs, episode_seed)
     labels = [spec_label(p) for p in policies]
     per_rig = []

@@ -60,6 +60,7 @@ from mpa_gym.agents.evaluation.episodes import (
     eval_task,
     recovery_s,
     run_episodes,
+    stack_jobs,
 )
 from mpa_gym.agents.evaluation.select import predict
 from mpa_gym.agents.learned.config import EVAL_SEED
@@ -155,7 +156,8 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
     (``policies.load_for_plant``: one object for the plants of equal delays), and a supervised
     run whose start is chosen on the model (``policies.selects``): its stages are predicted on
     each plant (``select.predict``), and the plants that start at the same stage (and are told
-    the same delays) share one object, started there."""
+    the same delays) share one object, started there. Those objects run as one stack
+    (``episodes.stack_jobs``), one call per step."""
     tells = isinstance(spec, str) and tells_delays(spec)
     told: dict[Any, tuple[Policy, str, Any]] = {}
     if tells:  # one object per pair of delays told
@@ -180,8 +182,9 @@ def plant_jobs(spec: str | Policy, sc: Scenario, plants: list[dict[str, float]],
                 # the start the key says (its predicted figures: this group's first plant's)
                 started[key][0].choose(*figures)
             loaded[j] = started[key]
-    return [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
+    jobs = [Job(sc, policy, env_id, eval_task(run_cfg), plant=p, seed=seed + j)
             for j, ((policy, env_id, run_cfg), p) in enumerate(zip(loaded, plants, strict=True))]
+    return stack_jobs(jobs, [list(range(len(jobs)))])  # the objects above, one call per step
 
 
 def _delays(plant: dict[str, float]) -> tuple[Any, Any]:

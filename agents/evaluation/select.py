@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from mpa_gym.agents.controllers.baselines import stacked
 from mpa_gym.agents.controllers.supervisor import Supervised
 from mpa_gym.agents.evaluation.episodes import (
     Job,
@@ -39,6 +38,7 @@ from mpa_gym.agents.evaluation.episodes import (
     run_episodes,
     score_mm,
     score_stiffness_pct,
+    stack_jobs,
     trace_metrics,
 )
 from mpa_gym.agents.learned.config import EVAL_SEED
@@ -74,6 +74,7 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
     jobs, owners, period = [], [], {}
     later: dict[int, list[int]] = {}  # a later stage -> its jobs, in the order of ``loaded``
     alone: dict[int, list[int]] = {}  # id(supervised policy) -> its policy-alone jobs
+    models_of: dict[int, list[int]] = {}  # id(a policy's network) -> its policy-alone jobs
     for i, ((policy, env_id, cfg), sc, plant) in enumerate(zip(loaded, scenarios, plants,
                                                               strict=True)):
         if not isinstance(policy, Supervised) or policy.spec.select is None:
@@ -85,17 +86,18 @@ def predict(loaded: list[tuple[Any, str, Any]], scenarios: list[Any],
         task = eval_task(cfg)
         for s, (ctrl, eid) in enumerate([(policy.policy, env_id)] + [
                 (c, "MPALegResidual-v0") for c in policy.controllers]):
-            (later.setdefault(s, []) if s else alone.setdefault(id(policy), [])).append(
-                len(jobs))
+            if s:
+                later.setdefault(s, []).append(len(jobs))
+            else:
+                alone.setdefault(id(policy), []).append(len(jobs))
+                models_of.setdefault(id(getattr(ctrl, "model", ctrl)), []).append(len(jobs))
             jobs.append(Job(model, ctrl, eid, task, plant=plant, seed=MODEL_SEED))
             owners.append(i)
-    # each later stage's controllers as one batch where they stack (one kind, gains and task
-    # config; each row its own plan, with the numbers its own controller gives): one call per
-    # step for the fallbacks of every scenario, cell or rig, not one per policy loaded
-    for idx in later.values():
-        if (one := stacked([jobs[j].policy for j in idx])) is not None:
-            for j in idx:
-                jobs[j] = dataclasses.replace(jobs[j], policy=one)
+    # each stage's controllers as one batch where they stack (one kind, gains and task config;
+    # each row its own plan or delays told, with the numbers its own controller gives): one
+    # call per step for each run's policies (one network), and for the fallbacks, of every
+    # scenario, cell or rig, not one per policy loaded
+    jobs = stack_jobs(jobs, [*models_of.values(), *later.values()])
     out: list[Figures | None] = [None] * len(loaded)
     if not jobs:
         return out

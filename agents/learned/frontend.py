@@ -493,13 +493,19 @@ class Frontend:
         self.settings = pack_settings(features, action, dt_s, residual_scale_bar)
         self.consts = constants(params)
         # [s] (dead time, lag) of the rig it runs on, for the delay observation: identified
-        # (``mpa-gym identify``) or the scenario's
-        self.known_delay_s = (0.0, 0.0)
+        # (``mpa-gym identify``) or the scenario's; (n, 2): one pair per row of a stack of n
+        # policies (``LearnedPolicy.stack_rows``)
+        self.known_delay_s: tuple[float, float] | np.ndarray = (0.0, 0.0)
 
     def new_state(self, n: int) -> np.ndarray:
-        """``n`` records at an episode's start on the rig of ``known_delay_s``."""
+        """``n`` records at an episode's start on the rig of ``known_delay_s`` (row i on the
+        i-th pair's, if it holds one per row)."""
+        told = np.asarray(self.known_delay_s, dtype=np.float64)
+        if told.ndim == 2 and told.shape[0] != n:
+            raise ValueError(f"a stack of {told.shape[0]} policies got a batch of {n} "
+                             "observations; row i is policy i's")
         st = new_state(n)
-        st["delay_s"] = self.known_delay_s
+        st["delay_s"] = told
         return st
 
     @classmethod

@@ -205,6 +205,29 @@ class LearnedPolicy(Episodic):
         self.stiffness_adapt_s = (None if self.frontend.action is None
                                   else self.frontend.action.stiffness_adapt_s)
 
+    @classmethod
+    def stack_rows(cls, policies: list[LearnedPolicy]) -> LearnedPolicy:
+        """One policy for a batch whose row i is ``policies[i]``'s (``baselines.stack``): the
+        same model, normaliser, features and action map, each row told its own policy's
+        delays. One network call per step for all rows, where each of them would make its own:
+        the actions are each policy's to float32 rounding (torch's product over a batch of
+        rows need not round the last bit as over one row; ~1e-7)."""
+        first = policies[0]
+        for p in policies:
+            if (p.model is not first.model or p.normalizer is not first.normalizer
+                    or p.features != first.features or p.dt != first.dt
+                    or p.force_stiffness != first.force_stiffness
+                    or p.stiffness_adapt_s != first.stiffness_adapt_s):
+                raise ValueError("stack: learned policies of one model, normaliser, features "
+                                 "and action map only")
+            if np.ndim(p.frontend.known_delay_s) != 1:
+                raise ValueError("stack: a stack of learned policies does not stack again")
+        out = cls(first.model, first.normalizer, first.features, first.dt,
+                  first.force_stiffness, first.stiffness_adapt_s, first.check)
+        out.frontend.known_delay_s = np.array([p.frontend.known_delay_s for p in policies],
+                                              dtype=np.float64).reshape(len(policies), 2)
+        return out
+
     def _mean_action(self, obs: np.ndarray) -> np.ndarray:
         """SB3's deterministic action, ``model.predict(obs, deterministic=True)``, by the same
         torch operations (features, actor MLP, action net: the Gaussian's mean; then the clip to

@@ -18,7 +18,7 @@ from stable_baselines3.common.callbacks import (
     EvalCallback,
 )
 
-from mpa_gym.agents.evaluation.episodes import Job, eval_task, metrics, run_episodes
+from mpa_gym.agents.evaluation.episodes import Job, eval_task, metrics, run_episodes, stack_jobs
 from mpa_gym.agents.evaluation.seeds import cores
 from mpa_gym.agents.learned.anchor import rest_for_save
 from mpa_gym.agents.learned.config import (
@@ -85,7 +85,9 @@ def held_out_metrics(cfg: TrainConfig, scenarios: list[Any], model: Any, normali
     if cfg.supervisor is not None:
         jobs += [Job(sc, supervise(p, cfg, {"scenario": sc}), cfg.env_id, task)
                  for sc, p in zip(scenarios, own, strict=True)]
-    traces = run_episodes(jobs, cfg.eval_seed)
+    n = len(scenarios)  # the policies told their delays, and the supervisors, as stacks
+    traces = run_episodes(stack_jobs(jobs, [list(range(n)), list(range(n, len(jobs)))]),
+                          cfg.eval_seed)
     out = [(metrics(tr, sc.reference.period, None), len(tr.t))
            for sc, tr in zip(scenarios, traces, strict=False)]
     for sc, (m, _), tr in zip(scenarios, out, traces[len(scenarios):], strict=False):
