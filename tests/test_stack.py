@@ -19,7 +19,7 @@ from mpa_gym.agents.controllers.supervisor import (
     Supervised,
     SupervisorSpec,
 )
-from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes
+from mpa_gym.agents.evaluation.episodes import Job, eval_task, run_episodes, stack_jobs
 from mpa_gym.agents.evaluation.robustness import plant_jobs
 from mpa_gym.agents.learned.policies import ALONE, LearnedPolicy, load_for_plant
 from mpa_gym.agents.training.train import train
@@ -165,4 +165,64 @@ def test_a_sweeps_plants_told_their_delays_make_one_network_call_per_step(run, m
     jobs = plant_jobs(str(run) + ALONE, sc, TOLD, seed=3)
     assert len({id(j.policy) for j in jobs}) == 1
     traces = run_episodes(jobs, 3)
-    assert len(calls) == len(traces[0].t) == 200 and set(calls) == {3}
+    assert len(calls) == max(len(tr.t) for tr in traces) == 200 and set(calls) == {3}
+
+
+def test_every_evaluation_path_calls_a_runs_network_once_per_step_for_all_its_plants(
+        run, monkeypatch):
+    # Three plants of other delays: the report's scenarios (the policy alone, the supervised
+    # loop and the start's prediction on each model), the random rigs, the model predictions
+    # of several loads and training's held-out evaluation each give the network all three
+    # rows in one call, never a row at a time.
+    from mpa_gym.agents.evaluation.evaluate import evaluate
+    from mpa_gym.agents.evaluation.rigs import random_rigs
+    from mpa_gym.agents.evaluation.select import predict
+    from mpa_gym.agents.learned.policies import load_policy, load_run
+    from mpa_gym.agents.training.callbacks import held_out_metrics
+
+    rows: list[int] = []
+    mean_action = LearnedPolicy._mean_action
+
+    def counted(self, obs):
+        rows.append(len(obs))
+        return mean_action(self, obs)
+
+    monkeypatch.setattr(LearnedPolicy, "_mean_action", counted)
+    scenarios = [load_scenario({"name": f"p{i}", "duration_s": 2.0, "plant": plant})
+                 for i, plant in enumerate(TOLD)]
+    evaluate([str(run)], scenarios)
+    assert rows and set(rows) == {3}, sorted(set(rows))
+    rows.clear()
+    random_rigs([str(run) + ALONE], 3, 11, 0)
+    assert rows and set(rows) == {3}, sorted(set(rows))
+    rows.clear()
+    predict([load_policy(str(run), {"scenario": sc}) for sc in scenarios], scenarios,
+            [None] * 3)
+    assert rows and set(rows) == {3}, sorted(set(rows))
+    rows.clear()
+    policy, cfg = load_run(run)
+    held_out_metrics(cfg, scenarios, policy.model, policy.normalizer)
+    assert rows and set(rows) == {3}, sorted(set(rows))
+
+
+def test_a_stack_is_made_once_and_of_whole_groups():
+    sc = load_scenario("nominal")
+    spec = SupervisorSpec()
+    sups = [Supervised(Wobbly(), make_baseline("rc", sc), DT, 3.0, spec,
+                       make_baseline("pid", sc)) for _ in range(2)]
+    one = stack(sups)
+    with pytest.raises(ValueError, match=r"stack of supervisors does not stack again"):
+        stack([one, one])
+    with pytest.raises(ValueError, match=r"choose on each before stacking"):
+        one.choose([0.5, 0.4, 0.3])
+    pids = stack([make_baseline("pid", sc), make_baseline("pid", load_scenario("load_1kg"))])
+    with pytest.raises(ValueError, match=r"stack of controllers does not stack again"):
+        stack([pids, pids])
+
+    class Mine(type(make_baseline("ff"))):  # a subclass of ZeroResidual may act per row
+        pass
+
+    assert stacked([Mine(), Mine()]) is None
+    jobs = [Job(sc, make_baseline("pid", sc), "MPALegResidual-v0", {}) for _ in range(3)]
+    with pytest.raises(ValueError, match=r"job\(s\) \[1\] in two groups"):
+        stack_jobs(jobs, [[0, 1], [1, 2]])

@@ -96,9 +96,11 @@ class _PlanPolicy:
     def stack_rows(cls, policies: list[_PlanPolicy]) -> _PlanPolicy:
         """:func:`stack`: one set of gains and task config, row i following policy i's plan."""
         first = policies[0]
+        if any(p.row_plans for p in policies):
+            raise ValueError("stack: a stack of controllers does not stack again")
         gains = {k: v for k, v in vars(first).items() if k not in ("plan", "row_plans")}
         for p in policies:
-            if p.cfg != first.cfg or p.row_plans or \
+            if p.cfg != first.cfg or \
                     {k: v for k, v in vars(p).items() if k not in ("plan", "row_plans")} != gains:
                 raise ValueError("stack: controllers of one kind, gains and task config only")
         return dataclasses.replace(first, row_plans=tuple(p.plan for p in policies))
@@ -235,7 +237,10 @@ class ZeroResidual:
 
     @classmethod
     def stack_rows(cls, policies: list[ZeroResidual]) -> ZeroResidual:
-        """:func:`stack`: zero on every row is one of them."""
+        """:func:`stack`: zero on every row is one of them (not a subclass's: it may act)."""
+        if cls is not ZeroResidual:
+            raise ValueError(f"stack: {cls.__name__} does not stack (a subclass of "
+                             "ZeroResidual may act per row)")
         return policies[0]
 
     def predict(self, observation: np.ndarray, state: Any = None,

@@ -498,8 +498,8 @@ class MonitorState:
     actions: np.ndarray  # (n, 2, N) the policy's last N actions (extensor, flexor), likewise
 
     @classmethod
-    def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int, start: int = 0
-              ) -> MonitorState:
+    def zeros(cls, n: int, monitors: tuple[Monitor, ...], n_period: int,
+              start: int | np.ndarray = 0) -> MonitorState:
         return cls(np.broadcast_to(np.asarray(start, dtype=np.int64), (n,)).copy(),
                    np.zeros(n, dtype=np.int64),
                    np.zeros(n, dtype=np.int64), {m.name: np.zeros(n) for m in monitors},
@@ -562,6 +562,8 @@ class Supervised:
         each later stage's controller the stack of theirs, and each row started at its own
         supervisor's start (chosen on its own model, ``choose``)."""
         first = supervisors[0]
+        if any(np.ndim(s.start) for s in supervisors):
+            raise ValueError("stack: a stack of supervisors does not stack again")
         for s in supervisors:
             if (s.spec, s.dt, s.n_period) != (first.spec, first.dt, first.n_period):
                 raise ValueError("stack: supervisors of one spec, control period and reference "
@@ -578,6 +580,9 @@ class Supervised:
         """Start every episode at the stage ``spec.select`` chooses from each stage's predicted
         position RMSE [mm] and stiffness RMSE [%] on the model (``Selection.start``); the
         policy without a select."""
+        if np.ndim(self.start):
+            raise ValueError("choose: a stack of supervisors starts each row where its own "
+                             "supervisor chose; choose on each before stacking")
         for name, figures in (("predicted_mm", predicted_mm),
                               ("predicted_stiffness_pct", predicted_stiffness_pct)):
             if figures is not None and len(figures) != len(self.spec.stages):

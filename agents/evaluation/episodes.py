@@ -116,11 +116,17 @@ class _OneRow:
 
 
 def stack_jobs(jobs: list[Job], groups: list[list[int]]) -> list[Job]:
-    """``jobs`` with the controllers of each group of job indices (ascending) replaced by their
-    stack (``baselines.stack``), where they stack and are more than one object: one call per
-    step for the group, row i its i-th job's controller (its plan, delays told, start)."""
-    out = list(jobs)
+    """``jobs`` with the controllers of each group of job indices (disjoint groups) replaced by
+    their stack (``baselines.stack``), where they stack and are more than one object: one call
+    per step for the group, row i its i-th job's controller in job order (its plan, delays
+    told, start), the order in which :func:`run_episodes` gives a controller its rows."""
+    seen: set[int] = set()
     for idx in groups:
+        if seen & set(idx):
+            raise ValueError(f"stack_jobs: job(s) {sorted(seen & set(idx))} in two groups")
+        seen |= set(idx)
+    out = list(jobs)
+    for idx in map(sorted, groups):
         if len({id(jobs[j].policy) for j in idx}) < 2:
             continue
         if (one := stacked([jobs[j].policy for j in idx])) is not None:
