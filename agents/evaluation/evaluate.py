@@ -51,7 +51,6 @@ import gymnasium as gym
 import numpy as np
 
 import mpa_gym  # noqa: F401
-from mpa_gym.agents.controllers import baselines
 from mpa_gym.agents.controllers.baselines import BASELINES, TUNED_ON, Policy
 from mpa_gym.agents.controllers.gains import Gains
 from mpa_gym.agents.controllers.supervisor import (
@@ -71,6 +70,7 @@ from mpa_gym.agents.evaluation.episodes import (
     metrics,
     run_episode,
     run_episodes,
+    stack_jobs,
 )
 from mpa_gym.agents.evaluation.rigs import RIGS_SEED
 from mpa_gym.agents.evaluation.robustness import markdown as robustness_markdown
@@ -140,7 +140,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
     if groups:
         require_stats()
     # a baseline (and a supervised run: its monitors and fallbacks) is built for its scenario's
-    # plan; batched, one stack of them per baseline
+    # plan; batched, one stack of them per spec (_scenario_report)
     own = {spec: [load_policy(spec, {"scenario": sc}, gains=gains) for sc in loaded]
            for spec in policies if loads_per_scenario(spec)}
     swept = sweep_in_background(policies, seed=seed, gains=gains) if robustness else None
@@ -151,13 +151,7 @@ def evaluate(policies: list[str], scenarios: list[Any], seed: int = EVAL_SEED,
         choose_starts([p for spec in supervised for p in own[spec]],
                       [sc for _ in supervised for sc in loaded],
                       [None] * len(supervised) * len(loaded))
-        # batched, each spec's per-scenario controllers as one stack (a learned run's told
-        # each scenario's delays, its supervisor started where chosen)
-        stacked = {spec: st for spec, ps in own.items()
-                   if (st := baselines.stacked([p for p, _, _ in ps])) is not None
-                   } if batched else {}
-        report = _scenario_report(policies, loaded, learned, own, stacked, groups, seed,
-                                  batched)
+        report = _scenario_report(policies, loaded, learned, own, groups, seed, batched)
         if random_rigs:
             report["random_rigs"] = rigs.random_rigs(policies, random_rigs, rigs_seed, seed,
                                                      gains)
@@ -196,7 +190,7 @@ def _once(flag: str, labels: list[str], given: list[Any]) -> None:
 
 
 def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, Any],
-                     own: dict[str, list[tuple[Policy, str, Any]]], stacked: dict[str, Policy],
+                     own: dict[str, list[tuple[Policy, str, Any]]],
                      groups: list[list[str]], seed: int, batched: bool) -> dict[str, Any]:
     """``evaluate``'s report without the sweep: every controller's episode on every scenario."""
     results: dict[str, dict[str, Any]] = {}
@@ -208,11 +202,13 @@ def _scenario_report(policies: list[str], loaded: list[Any], learned: dict[str, 
                 policy, env_id, run_cfg = learned[spec]
             else:
                 policy, env_id, run_cfg = own[spec][k]
-                policy = stacked.get(spec, policy)
             jobs.append(Job(sc, policy, env_id, eval_task(run_cfg)))
             keys.append((sc, spec_label(spec)))
-    if batched:
-        trs = run_episodes(jobs, seed)
+    if batched:  # each spec's per-scenario controllers as one stack (its own plans, delays
+        # told and starts chosen)
+        trs = run_episodes(stack_jobs(jobs, [list(range(c, len(jobs), len(policies)))
+                                             for c, spec in enumerate(policies) if spec in own]),
+                           seed)
     else:
         trs = []
         for j in jobs:
