@@ -69,6 +69,14 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     err, moved = compare(sb3, deployed, env)
     assert moved > 1e-3  # the actions are not trivially zero
     assert err < ATOL, err
+    # the estimator regressed on X̂ and V̂ (stiffness_adapt_velocity) reaches both paths alike
+    flip = not sb3.stiffness_adapt_velocity
+    sb3_v = LearnedPolicy(sb3.model, sb3.normalizer, sb3.features, sb3.dt, sb3.force_stiffness,
+                          sb3.stiffness_adapt_s, sb3.check, stiffness_adapt_velocity=flip)
+    deployed_v = DeployedPolicy.from_learned(sb3_v, env.observation_space.shape[0])
+    assert deployed_v.frontend.settings[0]["adapt_velocity"] == flip
+    err, moved = compare(sb3_v, deployed_v, env)
+    assert moved > 1e-3 and err < ATOL, err
 
 
 def _untrained(env_id, policy_kwargs, normalize=True, seed=0):

@@ -132,6 +132,12 @@ def test_what_does_not_stack_is_refused_by_name(run):
                           learned.force_stiffness, learned.stiffness_adapt_s)
     with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
         stack([learned, other])
+    # the estimator's regression is part of the action map
+    flipped = LearnedPolicy(learned.model, learned.normalizer, learned.features, learned.dt,
+                            learned.force_stiffness, learned.stiffness_adapt_s,
+                            stiffness_adapt_velocity=not learned.stiffness_adapt_velocity)
+    with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
+        stack([learned, flipped])
     one = stack([learned, learned, learned])
     with pytest.raises(ValueError, match=r"stack of learned policies does not stack again"):
         stack([one, one])

@@ -69,8 +69,16 @@ period; k̂ is ~545 N/m). The estimator low-passes (time constant τ) the means 
 applied ΔF, their covariance c and X̂'s variance v. It low-passes the slope c / (v + v₀) once
 more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiffness_rel`` k̂).
 Each update's weight is 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
-moves it. An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
-known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period.
+moves it. With ``stiffness_adapt_velocity`` the slope is X̂'s coefficient in a regression of ΔF
+on X̂ and V̂ together (their low-passed covariances, a 2×2 solve, V̂'s variance regularised by
+v₀ᵥ). Over whole periods X̂ and V̂ are orthogonal, but the weights are not uniform over a period
+where the error is not (friction and slew make it largest at the reversals), and then the
+part of ΔF that follows V̂ (the friction, damping and delay corrections) leaks into X̂'s
+slope: on ``configs/rigs/offnominal.yaml`` (C1 −10 %) an X̂-only estimate settled near 0 N/m
+where about −40 N/m corrects the stiffness, and left an 8 % stiffness error (CHANGELOG.md,
+issue 36). An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
+known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period,
+and turns a part c·V̂ of ΔF into an X̂ slope of c·ω²·dt (4.4 N/m for c = 100 N s/m).
 Off the training plants, an a_k learned from the error features can go the wrong way
 (CHANGELOG.md, 0.1.0, e2e9a73); the estimate needs no learning. It is a controller's
 computation from its own commands and the reference, like the features, never a plant
@@ -188,6 +196,8 @@ ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a
 #                       kick's transient says nothing about the plant's stiffness
 ADAPT_VAR_M2 = 1e-5  # [m²] regulariser of X̂'s variance, (3.2 mm)², a twentieth of the 20 mm
 #                      reference's A²/2: a reference that barely moves gives no estimate
+ADAPT_VAR_V2 = 4.4e-5  # [m²/s²] v₀ᵥ, regulariser of V̂'s variance, a twentieth of the 20 mm,
+#                        3 s reference's (Aω)²/2
 
 
 def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
@@ -203,6 +213,16 @@ def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
     return tau
 
 
+def check_adapt_velocity(flag: Any, tau: float | None) -> bool:
+    """``stiffness_adapt_velocity`` checked: a bool, true only with an estimator (``tau``)."""
+    if not isinstance(flag, bool | np.bool_):
+        raise ValueError(f"stiffness_adapt_velocity={flag!r} must be true or false")
+    if flag and tau is None:
+        raise ValueError("stiffness_adapt_velocity=true needs stiffness_adapt_s (it changes "
+                         "the stiffness estimator's regression)")
+    return bool(flag)
+
+
 @dataclass(frozen=True)
 class ActionSpec:
     """The action map (``ForceStiffnessAction``'s kwargs; module docstring)."""
@@ -213,10 +233,14 @@ class ActionSpec:
     # [s] time constant of the stiffness estimator whose a_k replaces the policy's (module
     # docs); None: the policy's own a_k
     stiffness_adapt_s: float | None = None
+    # the estimator regresses ΔF on X̂ and V̂ together (module docs); False: on X̂ alone, as
+    # run folders written before this field did
+    stiffness_adapt_velocity: bool = False
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "stiffness_adapt_s",
                            adapt_time_constant(self.stiffness_adapt_s))
+        check_adapt_velocity(self.stiffness_adapt_velocity, self.stiffness_adapt_s)
         for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
                              ("rate_penalty", 0.0, 100.0)):
             value = getattr(self, name)
@@ -242,6 +266,12 @@ STATE = np.dtype([
     ("est_cov_N_m", np.float64),  # [N m] covariance c of ΔF and X̂
     ("est_var_m2", np.float64),  # [m²] variance v of X̂
     ("est_slope_N_per_m", np.float64),  # [N/m] c / (v + v₀), clipped to ±stiffness_rel k̂
+    # with ActionSpec.stiffness_adapt_velocity: V̂'s mean, its covariances with ΔF and X̂, and
+    # its variance
+    ("est_v_ref_mps", np.float64),  # [m/s]
+    ("est_cov_N_mps", np.float64),  # [N m/s]
+    ("est_cov_m2ps", np.float64),  # [m²/s]
+    ("est_var_m2ps2", np.float64),  # [m²/s²]
     ("est_applied_N", np.float64),  # [N] the ΔF applied last step, paired with the next X̂
     ("est_started", np.bool_),  # the estimator has had its first observation
     # [s] the rig's regulator dead time and lag, for FeatureSpec.delay_observation: the
@@ -269,6 +299,7 @@ SETTINGS = np.dtype([
     ("residual_scale_Pa", np.float64),  # [Pa] the residual env's pressure at action ±1
     ("adapt", np.bool_),  # stiffness_adapt_s is not None
     ("stiffness_adapt_s", np.float64),
+    ("adapt_velocity", np.bool_),  # ActionSpec.stiffness_adapt_velocity
     ("dt_s", np.float64),  # [s] the control period: the integrals' and the estimator's step
 ])
 
@@ -297,6 +328,7 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
                                              low_open=True, unit="bar") * BAR
         r["adapt"] = action.stiffness_adapt_s is not None
         r["stiffness_adapt_s"] = action.stiffness_adapt_s or 0.0
+        r["adapt_velocity"] = action.stiffness_adapt_velocity
     return rec
 
 
@@ -314,6 +346,10 @@ def restart_row(st):
     st.est_var_m2 = 0.0
     st.est_slope_N_per_m = 0.0
     st.est_applied_N = 0.0
+    st.est_v_ref_mps = 0.0
+    st.est_cov_N_mps = 0.0
+    st.est_cov_m2ps = 0.0
+    st.est_var_m2ps2 = 0.0
     st.est_started = False
 
 
@@ -381,28 +417,43 @@ def observe_row(raw, st, fresh, cfg, feat):
 
 
 @numba.njit(**JIT)
-def estimate_row(st, x_ref, e, k_ref, a_F, cfg):
+def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, cfg):
     """One step of the stiffness estimator (module docstring) at reference X̂ = ``x_ref``
-    [m], tracking error ``e`` [m] and k̂ = ``k_ref`` [N/m], its record fields updated → â_k;
-    then the force correction ``a_F`` applied this step, which the next update pairs with the
-    next X̂."""
+    [m], V̂ = ``v_ref`` [m/s] (read with ``cfg.adapt_velocity`` only), tracking error ``e`` [m]
+    and k̂ = ``k_ref`` [N/m], its record fields updated → â_k; then the force correction
+    ``a_F`` applied this step, which the next update pairs with the next X̂."""
     if not st.est_started:
         st.est_force_N = 0.0
         st.est_cov_N_m = 0.0
         st.est_var_m2 = 0.0
         st.est_slope_N_per_m = 0.0
         st.est_applied_N = 0.0
-        st.est_x_ref_m, st.est_started = x_ref, True
+        st.est_cov_N_mps = 0.0
+        st.est_cov_m2ps = 0.0
+        st.est_var_m2ps2 = 0.0
+        st.est_x_ref_m, st.est_v_ref_mps, st.est_started = x_ref, v_ref, True
     al = cfg.dt_s / cfg.stiffness_adapt_s / (1.0 + (e / ADAPT_ERROR_M) ** 2)
     st.est_x_ref_m += al * (x_ref - st.est_x_ref_m)
     st.est_force_N += al * (st.est_applied_N - st.est_force_N)
     dx, dF = x_ref - st.est_x_ref_m, st.est_applied_N - st.est_force_N
     st.est_cov_N_m += al * (dF * dx - st.est_cov_N_m)
     st.est_var_m2 += al * (dx * dx - st.est_var_m2)
+    if cfg.adapt_velocity:
+        st.est_v_ref_mps += al * (v_ref - st.est_v_ref_mps)
+        dv = v_ref - st.est_v_ref_mps
+        st.est_cov_N_mps += al * (dF * dv - st.est_cov_N_mps)
+        st.est_cov_m2ps += al * (dx * dv - st.est_cov_m2ps)
+        st.est_var_m2ps2 += al * (dv * dv - st.est_var_m2ps2)
     span = cfg.stiffness_rel * abs(k_ref)
     a_k = 0.0
     if span > 0.0:
-        slope = min(max(st.est_cov_N_m / (st.est_var_m2 + ADAPT_VAR_M2), -span), span)
+        v = st.est_var_m2 + ADAPT_VAR_M2
+        if cfg.adapt_velocity:  # X̂'s coefficient of the regression on (X̂, V̂)
+            vv, cxv = st.est_var_m2ps2 + ADAPT_VAR_V2, st.est_cov_m2ps
+            fit = (st.est_cov_N_m * vv - cxv * st.est_cov_N_mps) / (v * vv - cxv * cxv)
+        else:
+            fit = st.est_cov_N_m / v
+        slope = min(max(fit, -span), span)
         st.est_slope_N_per_m += al * (slope - st.est_slope_N_per_m)
         a_k = min(max(-st.est_slope_N_per_m / span, -1.0), 1.0)
     st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
@@ -441,7 +492,8 @@ def act_row(a, raw, st, cfg, c, out):
         k_ref = np.float64(raw[OK]) * OBS_KREF_SCALE
         a_F, a_k = np.float64(a[0]), np.float64(a[1])
         if cfg.adapt:
-            a_k = estimate_row(st, x_ref, x_ref - np.float64(raw[OX]), k_ref, a_F, cfg)
+            a_k = estimate_row(st, x_ref, np.float64(raw[OVR]), x_ref - np.float64(raw[OX]),
+                               k_ref, a_F, cfg)
         force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out)
     else:
         out[0] = a[0]
@@ -469,7 +521,8 @@ def _act_rows(a, raw, state, cfg, c, out):
 def _estimate_rows(a_F, raw, state, cfg, out):
     for i in range(a_F.shape[0]):
         x_ref = np.float64(raw[i, OXR])
-        out[i] = estimate_row(state[i], x_ref, x_ref - np.float64(raw[i, OX]),
+        out[i] = estimate_row(state[i], x_ref, np.float64(raw[i, OVR]),
+                              x_ref - np.float64(raw[i, OX]),
                               np.float64(raw[i, OK]) * OBS_KREF_SCALE, a_F[i], cfg[0])
 
 
@@ -511,16 +564,20 @@ class Frontend:
     @classmethod
     def of(cls, features: FeatureSpec | None, dt_s: float,
            force_stiffness: tuple[float, float, float] | None,
-           stiffness_adapt_s: float | None = None, params: Params = DEFAULT_PARAMS
-           ) -> Frontend:
+           stiffness_adapt_s: float | None = None, params: Params = DEFAULT_PARAMS,
+           stiffness_adapt_velocity: bool = False) -> Frontend:
         """From a policy's arguments: ``force_stiffness`` = (force_N, stiffness_rel, residual
-        scale [bar]) or None, ``stiffness_adapt_s`` only with it."""
+        scale [bar]) or None, ``stiffness_adapt_s`` only with it and
+        ``stiffness_adapt_velocity`` only with that."""
         tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
+        velocity = check_adapt_velocity(stiffness_adapt_velocity, tau)
         if force_stiffness is None:
             return cls(features, None, dt_s, None, params)
         force_N, stiffness_rel, scale_bar = force_stiffness
         return cls(features, ActionSpec(force_N=force_N, stiffness_rel=stiffness_rel,
-                                        stiffness_adapt_s=tau), dt_s, scale_bar, params)
+                                        stiffness_adapt_s=tau,
+                                        stiffness_adapt_velocity=velocity),
+                   dt_s, scale_bar, params)
 
     def width(self, obs_dim: int) -> int:
         """Number of features of an observation with ``obs_dim`` columns."""

@@ -197,13 +197,17 @@ class LearnedPolicy(Episodic):
     def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
                  dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
                  stiffness_adapt_s: float | None = None,
-                 check: ObservationCheck | None = None) -> None:
+                 check: ObservationCheck | None = None,
+                 stiffness_adapt_velocity: bool = False) -> None:
         self.check = check
-        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s)
+        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s,
+                                    stiffness_adapt_velocity=stiffness_adapt_velocity)
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
-        self.stiffness_adapt_s = (None if self.frontend.action is None
-                                  else self.frontend.action.stiffness_adapt_s)
+        action = self.frontend.action
+        self.stiffness_adapt_s = None if action is None else action.stiffness_adapt_s
+        self.stiffness_adapt_velocity = (action is not None
+                                         and action.stiffness_adapt_velocity)
 
     @classmethod
     def stack_rows(cls, policies: list[LearnedPolicy]) -> LearnedPolicy:
@@ -217,13 +221,15 @@ class LearnedPolicy(Episodic):
             if (p.model is not first.model or p.normalizer is not first.normalizer
                     or p.features != first.features or p.dt != first.dt
                     or p.force_stiffness != first.force_stiffness
-                    or p.stiffness_adapt_s != first.stiffness_adapt_s):
+                    or p.stiffness_adapt_s != first.stiffness_adapt_s
+                    or p.stiffness_adapt_velocity != first.stiffness_adapt_velocity):
                 raise ValueError("stack: learned policies of one model, normaliser, features "
                                  "and action map only")
             if np.ndim(p.frontend.known_delay_s) != 1:
                 raise ValueError("stack: a stack of learned policies does not stack again")
         out = cls(first.model, first.normalizer, first.features, first.dt,
-                  first.force_stiffness, first.stiffness_adapt_s, first.check)
+                  first.force_stiffness, first.stiffness_adapt_s, first.check,
+                  first.stiffness_adapt_velocity)
         out.frontend.known_delay_s = np.array([p.frontend.known_delay_s for p in policies],
                                               dtype=np.float64).reshape(len(policies), 2)
         return out
@@ -258,13 +264,13 @@ class LearnedPolicy(Episodic):
         ``run``, which its errors name)."""
         task_cfg = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {})
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
-        fs, tau = None, None
+        fs, tau, velocity = None, None, False
         if aw is not None:
             spec = ActionSpec(**aw)
             fs = (spec.force_N, spec.stiffness_rel, task_cfg.residual_scale_bar)
-            tau = spec.stiffness_adapt_s
+            tau, velocity = spec.stiffness_adapt_s, spec.stiffness_adapt_velocity
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
-                   task_cfg.dt_s, fs, tau, ObservationCheck(cfg.env_id, run))
+                   task_cfg.dt_s, fs, tau, ObservationCheck(cfg.env_id, run), velocity)
 
     def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
                  deterministic: bool) -> tuple[np.ndarray, Any]:
