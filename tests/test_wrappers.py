@@ -7,8 +7,10 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+import yaml
 
 import mpa_gym  # noqa: F401  (registers the env ids)
+from mpa_gym.agents.learned.config import parse_config
 from mpa_gym.agents.learned.frontend import (
     ADAPT_VAR_M2,
     STATE,
@@ -18,6 +20,7 @@ from mpa_gym.agents.learned.frontend import (
     adapt_time_constant,
     new_state,
 )
+from mpa_gym.agents.learned.policies import LearnedPolicy
 from mpa_gym.agents.learned.wrappers import (
     ForceStiffnessAction,
     ForceStiffnessVectorAction,
@@ -26,6 +29,7 @@ from mpa_gym.agents.learned.wrappers import (
 )
 from mpa_gym.design import affine_in_pressures
 from mpa_gym.model.params import BAR
+from mpa_gym.task.contract import OBS_KREF_SCALE
 
 SHORT = {"name": "short", "duration_s": 6.0, "plant": {"extra_mass_kg": 1.0}}
 
@@ -335,8 +339,10 @@ def test_velocity_regression_keeps_the_slope_where_the_weights_follow_the_phase(
     # Regressed on X̂ and V̂ it moves by what two exact effects leave, and no more:
     # - the update pairs X̂ with last step's ΔF, and c·V̂(t − dt) = c·V̂(t) + c·ω²·dt·(X̂ − x0)
     #   to first order, an X̂ slope of exactly c·ω²·dt;
-    # - V̂'s regulariser v₀ᵥ keeps a share v₀ᵥ/(vv + v₀ᵥ) ≈ 0.05 of the X̂-only leak (vv =
-    #   (Aω)²/2 ≈ 8.8e-4 m²/s²): bounded by 0.1 of it.
+    # - V̂'s regulariser v₀ᵥ keeps a share v₀ᵥ/(vv + v₀ᵥ − c_xv²/(v + v₀)) of the X̂-only
+    #   leak: 0.05 with X̂ and V̂ uncorrelated under the weights (vv = (Aω)²/2 ≈ 8.8e-4
+    #   m²/s², v₀ᵥ a twentieth of it), at most 0.1 while their weighted correlation ρ² ≤ 0.5
+    #   (here, with a 1 mm error, it is far below).
     def leak(velocity):  # [N/m] how far c·V̂ moves the slope read
         def read(c):
             return -_estimate(slope, 40.0, damping=c, error_lag=0.6, velocity=velocity)[0] \
@@ -350,6 +356,79 @@ def test_velocity_regression_keeps_the_slope_where_the_weights_follow_the_phase(
     # that V̂ does not enter is X̂'s alone, to V̂'s regularisation (1e-3 of k̂ here)
     assert _estimate(slope, 40.0, error_lag=0.6, velocity=True)[0] == pytest.approx(
         _estimate(slope, 40.0, error_lag=0.6)[0], abs=2e-3)
+
+
+def test_without_the_option_the_estimator_is_the_documented_x_only_recursion():
+    # the module docstring's estimator, written out in Python over one stream (a ΔF with a
+    # velocity part, an error that follows the phase, a start): the compiled kernel without
+    # stiffness_adapt_velocity keeps the same slope to float64 rounding, as run folders
+    # written before the option were run
+    dt, tau, w = 0.01, 3.0, 2 * np.pi / 3.0
+    front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3, stiffness_adapt_s=tau),
+                     dt, 1.0)
+    st = new_state(1)
+    obs = np.zeros((1, 9), dtype=np.float32)
+    obs[0, 8] = 0.545  # k̂ [kN/m], as the observation holds it (float32)
+    span = 0.3 * float(obs[0, 8]) * OBS_KREF_SCALE
+    ref = None
+    for i in range(900):
+        t = i * dt
+        obs[0, 2], obs[0, 3] = 0.8 + 0.02 * np.sin(w * t), 0.02 * w * np.cos(w * t)
+        obs[0, 0] = obs[0, 2] - 1e-3 * abs(np.sin(w * t - 0.6))
+        a_F = np.clip(0.5 * np.sin(w * t + 0.3) + 0.1, -1.0, 1.0)
+        a_k = front.estimate(np.array([a_F]), obs, st)[0]
+        x, e = float(obs[0, 2]), float(obs[0, 2]) - float(obs[0, 0])
+        if ref is None:
+            ref = {"x": x, "F": 0.0, "c": 0.0, "v": 0.0, "s": 0.0, "applied": 0.0}
+        al = dt / tau / (1.0 + (e / 1e-3) ** 2)
+        ref["x"] += al * (x - ref["x"])
+        ref["F"] += al * (ref["applied"] - ref["F"])
+        dx, dF = x - ref["x"], ref["applied"] - ref["F"]
+        ref["c"] += al * (dF * dx - ref["c"])
+        ref["v"] += al * (dx * dx - ref["v"])
+        ref["s"] += al * (min(max(ref["c"] / (ref["v"] + ADAPT_VAR_M2), -span), span)
+                          - ref["s"])
+        ref["applied"] = a_F * 20.0
+        assert a_k == pytest.approx(min(max(-ref["s"] / span, -1.0), 1.0), rel=1e-12,
+                                    abs=1e-15)
+    assert abs(ref["s"]) > 1.0  # the stream moves the estimate (the check can fail)
+
+
+def test_the_action_kernel_and_the_estimator_read_the_reference_velocity():
+    # act_row (every policy's path: training wrapper, loaded, deployed) and estimate run one
+    # estimator, and with the option on it reads V̂ (the reference), not the measured V: fed
+    # a stream whose V is noise, both keep the same record, bit for bit
+    dt, w = 0.01, 2 * np.pi / 3.0
+    front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3, stiffness_adapt_s=3.0,
+                                      stiffness_adapt_velocity=True), dt, 1.0)
+    acted, estimated = new_state(1), new_state(1)
+    obs = np.zeros((1, 9), dtype=np.float32)
+    obs[0, 8] = 0.545
+    rng = np.random.default_rng(0)
+    for i in range(600):
+        t = i * dt
+        obs[0, 2], obs[0, 3] = 0.8 + 0.02 * np.sin(w * t), 0.02 * w * np.cos(w * t)
+        obs[0, 0], obs[0, 1] = obs[0, 2] - 1e-3 * abs(np.sin(w * t - 0.6)), rng.normal(0, 0.05)
+        a = rng.uniform(-1.0, 1.0, (1, 2)).astype(np.float32)
+        front.act(a, obs, acted)
+        front.estimate(a[:, 0], obs, estimated)
+    for field in ("est_v_ref_mps", "est_cov_N_mps", "est_cov_m2ps", "est_slope_N_per_m"):
+        assert acted[field][0] == estimated[field][0], field
+    assert acted["est_cov_N_mps"][0] != 0.0
+
+
+def test_a_config_with_the_option_gives_a_policy_with_it():
+    # config → parse_config → the loaded policy's front-end (what evaluate, rollout and the
+    # deployed path build from a run folder)
+    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    for on in (True, False):
+        for wrapper in raw["MPALegResidual-v0"]["env_wrapper"]:
+            for name, kwargs in wrapper.items():
+                if name.endswith("ForceStiffnessAction"):
+                    kwargs["stiffness_adapt_velocity"] = on
+        policy = LearnedPolicy.from_config(None, None, parse_config(raw, "cfg.yaml"))
+        assert policy.stiffness_adapt_velocity is on
+        assert policy.frontend.settings[0]["adapt_velocity"] == on
 
 
 def test_stiffness_estimator_setting_is_checked():

@@ -240,7 +240,9 @@ class ActionSpec:
     def __post_init__(self) -> None:
         object.__setattr__(self, "stiffness_adapt_s",
                            adapt_time_constant(self.stiffness_adapt_s))
-        check_adapt_velocity(self.stiffness_adapt_velocity, self.stiffness_adapt_s)
+        object.__setattr__(self, "stiffness_adapt_velocity",
+                           check_adapt_velocity(self.stiffness_adapt_velocity,
+                                                self.stiffness_adapt_s))
         for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
                              ("rate_penalty", 0.0, 100.0)):
             value = getattr(self, name)
@@ -265,7 +267,9 @@ STATE = np.dtype([
     ("est_force_N", np.float64),  # [N] mean of the applied ΔF
     ("est_cov_N_m", np.float64),  # [N m] covariance c of ΔF and X̂
     ("est_var_m2", np.float64),  # [m²] variance v of X̂
-    ("est_slope_N_per_m", np.float64),  # [N/m] c / (v + v₀), clipped to ±stiffness_rel k̂
+    # [N/m] the fitted slope, c / (v + v₀) (with stiffness_adapt_velocity: X̂'s coefficient
+    # of the regression on X̂ and V̂), clipped to ±stiffness_rel k̂, low-passed
+    ("est_slope_N_per_m", np.float64),
     # with ActionSpec.stiffness_adapt_velocity: V̂'s mean, its covariances with ΔF and X̂, and
     # its variance
     ("est_v_ref_mps", np.float64),  # [m/s]
@@ -419,9 +423,10 @@ def observe_row(raw, st, fresh, cfg, feat):
 @numba.njit(**JIT)
 def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, cfg):
     """One step of the stiffness estimator (module docstring) at reference X̂ = ``x_ref``
-    [m], V̂ = ``v_ref`` [m/s] (read with ``cfg.adapt_velocity`` only), tracking error ``e`` [m]
-    and k̂ = ``k_ref`` [N/m], its record fields updated → â_k; then the force correction
-    ``a_F`` applied this step, which the next update pairs with the next X̂."""
+    [m], V̂ = ``v_ref`` [m/s] (kept at the start, used with ``cfg.adapt_velocity`` only),
+    tracking error ``e`` [m] and k̂ = ``k_ref`` [N/m], its record fields updated → â_k; then
+    the force correction ``a_F`` applied this step, which the next update pairs with the next
+    X̂."""
     if not st.est_started:
         st.est_force_N = 0.0
         st.est_cov_N_m = 0.0
