@@ -225,8 +225,8 @@ def test_a_stack_is_made_once_and_of_whole_groups():
     with pytest.raises(ValueError, match=r"stack of controllers does not stack again"):
         stack([pids, pids])
 
-    class Mine(type(make_baseline("ff"))):  # a subclass of ZeroResidual may act per row
-        pass
+    class Mine(type(make_baseline("ff"))):
+        """A subclass of ZeroResidual: it may act per row, so it does not stack as zero."""
 
     assert stacked([Mine(), Mine()]) is None
     jobs = [Job(sc, make_baseline("pid", sc), "MPALegResidual-v0", {}) for _ in range(3)]

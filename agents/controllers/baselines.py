@@ -98,11 +98,12 @@ class _PlanPolicy:
         first = policies[0]
         if any(p.row_plans for p in policies):
             raise ValueError("stack: a stack of controllers does not stack again")
-        gains = {k: v for k, v in vars(first).items() if k not in ("plan", "row_plans")}
-        for p in policies:
-            if p.cfg != first.cfg or \
-                    {k: v for k, v in vars(p).items() if k not in ("plan", "row_plans")} != gains:
-                raise ValueError("stack: controllers of one kind, gains and task config only")
+
+        def gains(p: _PlanPolicy) -> dict[str, Any]:
+            return {k: v for k, v in vars(p).items() if k not in ("plan", "row_plans")}
+
+        if any(p.cfg != first.cfg or gains(p) != gains(first) for p in policies):
+            raise ValueError("stack: controllers of one kind, gains and task config only")
         return dataclasses.replace(first, row_plans=tuple(p.plan for p in policies))
 
     def _check_rows(self, n: int) -> None:

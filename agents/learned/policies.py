@@ -204,10 +204,17 @@ class LearnedPolicy(Episodic):
                                     stiffness_adapt_velocity=stiffness_adapt_velocity)
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
         self.force_stiffness = force_stiffness
+
+    @property
+    def stiffness_adapt_s(self) -> float | None:
+        """The stiffness estimator's time constant [s] (its front-end's), None: none."""
         action = self.frontend.action
-        self.stiffness_adapt_s = None if action is None else action.stiffness_adapt_s
-        self.stiffness_adapt_velocity = (action is not None
-                                         and action.stiffness_adapt_velocity)
+        return None if action is None else action.stiffness_adapt_s
+
+    @property
+    def stiffness_adapt_velocity(self) -> bool:
+        """Whether the estimator regresses on X̂ and V̂ (its front-end's)."""
+        return self.frontend.action is not None and self.frontend.action.stiffness_adapt_velocity
 
     @classmethod
     def stack_rows(cls, policies: list[LearnedPolicy]) -> LearnedPolicy:
