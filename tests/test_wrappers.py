@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 import mpa_gym  # noqa: F401  (registers the env ids)
-from mpa_gym.agents.learned.config import parse_config
+from mpa_gym.agents.learned.config import ConfigError, parse_config
 from mpa_gym.agents.learned.frontend import (
     ADAPT_VAR_M2,
     STATE,
@@ -452,6 +452,45 @@ def test_stiffness_estimator_setting_is_checked():
     assert ActionSpec(stiffness_adapt_s=3.0).stiffness_adapt_velocity is False
     with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
         adapt_time_constant(3.0, force_stiffness=False)
+
+
+def test_stiffness_time_constant_shorter_than_the_control_period_is_refused():
+    # an update's weight is dt/τ: above 1 the low-passed variance of X̂ can turn negative, so
+    # τ < dt is refused where the action map meets the control period (the env's 0.01 s)
+    env = gym.make("MPALegResidual-v0")
+    dt = env.unwrapped.cfg.dt_s
+    with pytest.raises(ValueError, match=r"stiffness_adapt_s=0\.005 s is outside the allowed "
+                                         r"range \[0\.01, 60\] s \(at least the control "
+                                         r"period dt_s, or null: no estimator\)"):
+        ForceStiffnessAction(env, stiffness_adapt_s=dt / 2)
+    # a training config is refused at parsing, before a run folder exists, against its own
+    # task's control period
+    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    hp = raw["MPALegResidual-v0"]
+    hp["env_kwargs"]["task"]["dt_s"] = 0.02
+    for wrapper in hp["env_wrapper"]:
+        for name, kwargs in wrapper.items():
+            if name.endswith("ForceStiffnessAction"):
+                kwargs["stiffness_adapt_s"] = 0.015
+    with pytest.raises(ConfigError, match=r"cfg\.yaml: MPALegResidual-v0\.env_wrapper: .*"
+                                          r"ForceStiffnessAction: stiffness_adapt_s=0\.015 s .*"
+                                          r"\[0\.02, 60\] s"):
+        parse_config(raw, "cfg.yaml")
+    assert Frontend(None, ActionSpec(stiffness_adapt_s=dt), dt, 1.0).settings[0][
+        "stiffness_adapt_s"] == dt  # the bound itself is allowed
+    # why: on the same noisy reference, X̂'s low-passed variance stays ≥ 0 at τ = dt and
+    # turns negative at τ = dt/2 (set past the check, in the kernel's settings)
+    obs, _ = env.reset(seed=0)
+    lowest = {}
+    for tau in (dt, dt / 2):
+        front = Frontend(None, ActionSpec(stiffness_adapt_s=dt), dt, 1.0)
+        front.settings[0]["stiffness_adapt_s"] = tau
+        st, rng, lowest[tau] = front.new_state(1), np.random.default_rng(3), np.inf
+        for _ in range(300):
+            raw = obs[None] + rng.normal(0.0, 0.02, (1, obs.size)).astype(np.float32)
+            front.estimate(rng.uniform(-1.0, 1.0, 1), raw, st)
+            lowest[tau] = min(lowest[tau], st["est_var_m2"][0])
+    assert lowest[dt] >= 0.0 > lowest[dt / 2]
 
 
 def test_action_history_holds_the_last_actions_applied_newest_first():

@@ -38,7 +38,7 @@ from typing import Any
 
 import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.agents.controllers.supervisor import SupervisorSpec
-from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec
+from mpa_gym.agents.learned.wrappers import ActionSpec, FeatureSpec, adapt_time_constant
 from mpa_gym.analysis.scenario import load_scenario
 from mpa_gym.configs import DEFAULT_TRAIN_CONFIG
 from mpa_gym.envs.leg_env import make_plans, task_config
@@ -133,7 +133,8 @@ class TrainConfig:
         for name, kwargs in ((OBS_WRAPPER, self.observation_wrapper),
                              (ACTION_WRAPPER, self.action_wrapper)):
             if kwargs is not None:
-                _check_wrapper(name, kwargs, self.env_id, f"{where}.env_wrapper")
+                _check_wrapper(name, kwargs, self.env_id, f"{where}.env_wrapper",
+                               task_config(ek.get("task")).dt_s)
         h = f"{self.source}: mpa_gym"
         self.seed = _int(self.seed, f"{h}.seed", 0, SEED_MAX)
         self.eval_freq = _int(self.eval_freq, f"{h}.eval_freq", 1, 1e10)
@@ -326,8 +327,9 @@ def _check_policy_kwargs(pk: Any, where: str) -> None:
             _bool(pk[key], f"{where}.{key}")
 
 
-def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str) -> None:
-    """A wrapper's kwargs, checked by the wrapper's own validation."""
+def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str, dt_s: float) -> None:
+    """A wrapper's kwargs, checked by the wrapper's own validation, on an env whose control
+    period is ``dt_s``."""
     import dataclasses
 
 
@@ -337,7 +339,9 @@ def _check_wrapper(name: str, kwargs: Any, env_id: str, where: str) -> None:
     allowed = [f.name for f in dataclasses.fields(check)]
     check_keys(f"{where}: {name}", kwargs, allowed, ConfigError)
     try:
-        check(**kwargs)
+        spec = check(**kwargs)
+        if name == ACTION_WRAPPER:  # the estimator's time constant against the env's period
+            adapt_time_constant(spec.stiffness_adapt_s, dt_s=dt_s)
     except ValueError as e:
         raise ConfigError(f"{where}: {name}: {e}") from None
     if name == ACTION_WRAPPER and env_id != "MPALegResidual-v0":

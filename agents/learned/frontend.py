@@ -200,13 +200,20 @@ ADAPT_VAR_V2 = 4.4e-5  # [m²/s²] v₀ᵥ, regulariser of V̂'s variance, a twe
 #                        3 s reference's (Aω)²/2
 
 
-def adapt_time_constant(tau: Any, force_stiffness: bool = True) -> float | None:
+def adapt_time_constant(tau: Any, force_stiffness: bool = True, dt_s: float | None = None
+                        ) -> float | None:
     """``stiffness_adapt_s`` checked: None (no estimator) or a time constant in
-    (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``)."""
+    (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``);
+    given the control period ``dt_s``, in [``dt_s``, ``ADAPT_MAX_S``]: an update's weight
+    dt/τ above 1 can turn the low-passed variances negative."""
     if tau is None:
         return None
-    tau = check_range("stiffness_adapt_s", tau, 0.0, ADAPT_MAX_S, low_open=True, unit="s",
-                      note="or null: no estimator")
+    if dt_s is None:
+        tau = check_range("stiffness_adapt_s", tau, 0.0, ADAPT_MAX_S, low_open=True, unit="s",
+                          note="or null: no estimator")
+    else:
+        tau = check_range("stiffness_adapt_s", tau, dt_s, ADAPT_MAX_S, unit="s",
+                          note="at least the control period dt_s, or null: no estimator")
     if not force_stiffness:
         raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
                          "the stiffness coordinate of ForceStiffnessAction)")
@@ -231,7 +238,7 @@ class ActionSpec:
     stiffness_rel: float = 0.3  # [-] stiffness correction Δk at a_k = ±1, as a share of k̂
     rate_penalty: float = 0.0  # weight of |a_t − a_{t−1}|² taken off the training reward
     # [s] time constant of the stiffness estimator whose a_k replaces the policy's (module
-    # docs); None: the policy's own a_k
+    # docs), at least the control period; None: the policy's own a_k
     stiffness_adapt_s: float | None = None
     # the estimator regresses ΔF on X̂ and V̂ together (module docs); False: on X̂ alone, as
     # run folders written before this field did
@@ -331,7 +338,8 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
         r["residual_scale_Pa"] = check_range("residual_scale_bar", residual_scale_bar, 0.0,
                                              low_open=True, unit="bar") * BAR
         r["adapt"] = action.stiffness_adapt_s is not None
-        r["stiffness_adapt_s"] = action.stiffness_adapt_s or 0.0
+        r["stiffness_adapt_s"] = adapt_time_constant(action.stiffness_adapt_s,
+                                                     dt_s=r["dt_s"]) or 0.0
         r["adapt_velocity"] = action.stiffness_adapt_velocity
     return rec
 
