@@ -77,6 +77,14 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     assert deployed_v.frontend.settings[0]["adapt_velocity"] == flip
     err, moved = compare(sb3_v, deployed_v, env)
     assert moved > 1e-3 and err < ATOL, err
+    # and the harmonic force correction, on or off
+    other = 0.5 if sb3.harmonic_force_N is None else None
+    sb3_h = LearnedPolicy(sb3.model, sb3.normalizer, sb3.features, sb3.dt, sb3.force_stiffness,
+                          sb3.stiffness_adapt_s, sb3.check, sb3.stiffness_adapt_velocity, other)
+    deployed_h = DeployedPolicy.from_learned(sb3_h, env.observation_space.shape[0])
+    assert deployed_h.frontend.settings[0]["harmonic"] == (other is not None)
+    err, moved = compare(sb3_h, deployed_h, env)
+    assert moved > 1e-3 and err < ATOL, err
 
 
 def _untrained(env_id, policy_kwargs, normalize=True, seed=0):

@@ -138,6 +138,13 @@ def test_what_does_not_stack_is_refused_by_name(run):
                             stiffness_adapt_velocity=not learned.stiffness_adapt_velocity)
     with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
         stack([learned, flipped])
+    # so is the harmonic force correction
+    harmonic = LearnedPolicy(learned.model, learned.normalizer, learned.features, learned.dt,
+                             learned.force_stiffness, learned.stiffness_adapt_s,
+                             stiffness_adapt_velocity=learned.stiffness_adapt_velocity,
+                             harmonic_force_N=0.5 if learned.harmonic_force_N is None else None)
+    with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
+        stack([learned, harmonic])
     one = stack([learned, learned, learned])
     with pytest.raises(ValueError, match=r"stack of learned policies does not stack again"):
         stack([one, one])

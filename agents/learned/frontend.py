@@ -85,6 +85,34 @@ computation from its own commands and the reference, like the features, never a 
 parameter. The action space stays (a_F, a_k), so a config switches the estimator on or off
 without another network; the policy's a_k is then ignored, and its Gaussian adds noise, not
 bias, to PPO's gradient.
+
+``harmonic_force_N`` adds a harmonic force correction to the policy's ΔF: an integral action
+at the reference's 2nd and 3rd harmonics (``HARMONIC_FIRST`` … ``HARMONIC_LAST``), the
+repetitive controller's internal model where the policy's own features stop (its harmonic
+pair is the first harmonic's). Each step it integrates
+
+    J_sh += w e sin(hφ) dt,   J_ch += w e cos(hφ) dt,   w = 1 / (1 + (ê / 1 mm)²),
+
+each clipped to ±``HARMONIC_LIMIT_M_S``, and adds ΔF_h = g Σ_h (J_sh sin hφ + J_ch cos hφ),
+clipped to ±``harmonic_force_N``, with g = ``HARMONIC_GAIN``. For an error e = A sin(hφ),
+J_sh grows by w A/2 per second, so on the nominal leg (dynamic stiffness k̂ − m (hω)² ≈ 475
+N/m at h = 2 on the 3 s reference) the loop closes with a time constant 2 · 475 / g ≈ 2 s;
+the policy's own feedback makes the leg stiffer to ΔF and the time constant longer. It has
+no phase lead: it converges where the loop beneath keeps its phase at 2ω and 3ω within 90°
+of a spring's (70 ms of regulator delay costs 0.44 rad at 3ω). The trained policies' loops
+do (CHANGELOG.md); a loop beneath with a resonance near these harmonics may not, as for rc.
+ê is the envelope of |e| (it follows a rise at once and falls with ``HARMONIC_RELEASE_S``):
+a start's or a kick's transient barely charges the integrals. The estimator's weight, of e
+itself, would not do here: w e is then a saturating function of e, and a millimetre of
+first-harmonic error feeds the third harmonic's integrals through it (ff alone on
+heldout_bladder: 0.17 mm of third-harmonic error from 0.02), where ê holds steady over a
+period and w e stays linear in e. On the held-out plants, the error the
+policy leaves is at these harmonics (heldout_a: 0.035 mm of 0.045 at the 2nd, 0.009 at the
+3rd), which a first-harmonic pair cannot hold; features for them (``harmonics: 2`` or 3) let
+the network learn the same correction but cost the paper's transients and the friction cells
+(CHANGELOG.md, issue 36). Like the estimator, it is a controller's computation from its own
+measurements and the reference, and runs in training, in the loaded policy and in the compiled
+rig path alike; the estimator pairs X̂ with the whole ΔF applied, this correction included.
 """
 
 from __future__ import annotations
@@ -190,6 +218,16 @@ class FeatureSpec:
                           np.concatenate([base_hi, hi]).astype(np.float32), dtype=np.float32)
 
 
+# The harmonic force correction (ActionSpec.harmonic_force_N; module docs)
+HARMONIC_FIRST, HARMONIC_LAST = 2, 3  # the reference harmonics it corrects
+HARMONIC_GAIN = 500.0  # [N/(m s)] g: a time constant of ~2 s on the nominal leg at the 2nd
+#                        harmonic; at 160 heldout_a kept 0.016 mm of its 0.035 mm 2nd-harmonic
+#                        error after 30 s, at 400–1000 under 0.006, at 2500 the noise grew
+HARMONIC_LIMIT_M_S = 0.02  # [m s] anti-windup bound of its integrals (the features' default)
+HARMONIC_RELEASE_S = 10.0  # [s] release time of the error's envelope ê: over the half period
+#                            between two peaks of a steady error (1.5 s) ê falls by 14 %
+HARMONIC_MAX_N = 30.0  # [N] largest harmonic_force_N: the default config's force_N
+
 # The stiffness estimator (ActionSpec.stiffness_adapt_s; module docs)
 ADAPT_MAX_S = 60.0  # [s] its longest time constant: twenty reference periods, two episodes
 ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a start's or a
@@ -243,6 +281,9 @@ class ActionSpec:
     # the estimator regresses ΔF on X̂ and V̂ together (module docs); False: on X̂ alone, as
     # run folders written before this field did
     stiffness_adapt_velocity: bool = False
+    # [N] bound of the harmonic force correction added to ΔF (module docs); None: none, as
+    # run folders written before this field
+    harmonic_force_N: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "stiffness_adapt_s",
@@ -259,6 +300,10 @@ class ActionSpec:
                 interval = f"[{lo:g}, {hi:g}]" if lo is not None else f"(0, {hi:g}]"
                 raise ValueError(f"{name}={value!r} must be a number in {interval}")
             object.__setattr__(self, name, float(value))
+        if self.harmonic_force_N is not None:
+            object.__setattr__(self, "harmonic_force_N", check_range(
+                "harmonic_force_N", self.harmonic_force_N, 0.0, HARMONIC_MAX_N, low_open=True,
+                unit="N", note="or null: no harmonic force correction"))
 
 
 # One episode's state of a controller's front-end: a typed record, one per row (env, policy
@@ -289,6 +334,9 @@ STATE = np.dtype([
     # rig's, not the episode's, so an episode's start keeps them (Frontend.new_state fills
     # them with known_delay_s; the training wrappers with each episode's plant)
     ("delay_s", np.float64, (2,)),
+    # [m s] the harmonic force correction's integrals J_s2, J_c2, J_s3, J_c3, … (module docs)
+    ("harm", np.float64, (2 * (HARMONIC_LAST - HARMONIC_FIRST + 1),)),
+    ("harm_env_m", np.float64),  # [m] ê, the envelope of |e| that weighs its updates
 ])
 
 # A front-end's settings as the kernels read them, by name: the fields of FeatureSpec and
@@ -311,6 +359,8 @@ SETTINGS = np.dtype([
     ("adapt", np.bool_),  # stiffness_adapt_s is not None
     ("stiffness_adapt_s", np.float64),
     ("adapt_velocity", np.bool_),  # ActionSpec.stiffness_adapt_velocity
+    ("harmonic", np.bool_),  # ActionSpec.harmonic_force_N is not None
+    ("harmonic_force_N", np.float64),
     ("dt_s", np.float64),  # [s] the control period: the integrals' and the estimator's step
 ])
 
@@ -341,6 +391,8 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
         r["stiffness_adapt_s"] = adapt_time_constant(action.stiffness_adapt_s,
                                                      dt_s=r["dt_s"]) or 0.0
         r["adapt_velocity"] = action.stiffness_adapt_velocity
+        r["harmonic"] = action.harmonic_force_N is not None
+        r["harmonic_force_N"] = action.harmonic_force_N or 0.0
     return rec
 
 
@@ -363,6 +415,9 @@ def restart_row(st):
     st.est_cov_m2ps = 0.0
     st.est_var_m2ps2 = 0.0
     st.est_started = False
+    for i in range(st.harm.shape[0]):
+        st.harm[i] = 0.0
+    st.harm_env_m = 0.0
 
 
 @numba.njit(**JIT)
@@ -474,6 +529,26 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, cfg):
 
 
 @numba.njit(**JIT)
+def harmonic_row(st, s1, c1, e, cfg):
+    """One step of the harmonic force correction (module docstring) at the reference phase
+    (sin φ, cos φ) = (``s1``, ``c1``) and tracking error ``e`` [m]: its integrals in ``st``
+    updated → ΔF_h [N]. The basis sin hφ, cos hφ by the features' recurrence."""
+    st.harm_env_m = max(abs(e), st.harm_env_m * (1.0 - cfg.dt_s / HARMONIC_RELEASE_S))
+    w = cfg.dt_s * e / (1.0 + (st.harm_env_m / ADAPT_ERROR_M) ** 2)
+    zr, zi = 1.0, 0.0
+    out, j = 0.0, 0
+    for h in range(1, HARMONIC_LAST + 1):
+        zr, zi = zr * c1 - zi * s1, zr * s1 + zi * c1
+        if h >= HARMONIC_FIRST:
+            st.harm[j] = min(max(st.harm[j] + w * zi, -HARMONIC_LIMIT_M_S), HARMONIC_LIMIT_M_S)
+            st.harm[j + 1] = min(max(st.harm[j + 1] + w * zr, -HARMONIC_LIMIT_M_S),
+                                 HARMONIC_LIMIT_M_S)
+            out += st.harm[j] * zi + st.harm[j + 1] * zr
+            j += 2
+    return min(max(HARMONIC_GAIN * out, -cfg.harmonic_force_N), cfg.harmonic_force_N)
+
+
+@numba.njit(**JIT)
 def force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out):
     """(a_F, a_k) → the residual action (a_e, a_f) into ``out``: solves J(X̂) ΔP = (a_F ·
     force_N, a_k · stiffness_rel · k̂) on the nominal model (constants ``c``, ``fast.pack``)
@@ -496,14 +571,19 @@ def force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out):
 @numba.njit(**JIT)
 def act_row(a, raw, st, cfg, c, out):
     """The env's action for the policy's action ``a`` at observation ``raw`` (the env's own)
-    into ``out``: with ``cfg.force_stiffness``, a = (a_F, a_k), a_k replaced by the stiffness
-    estimator's if ``cfg.adapt``, mapped by ``force_stiffness_row``; else ``a`` itself. The
+    into ``out``: with ``cfg.force_stiffness``, a = (a_F, a_k), the harmonic force correction
+    added to a_F if ``cfg.harmonic``, a_k replaced by the stiffness estimator's if
+    ``cfg.adapt``, mapped by ``force_stiffness_row``; else ``a`` itself. The
     record keeps it (clipped, as the env applies it) as the next features' a_{t−1}, the older
     ones moving down the history."""
     if cfg.force_stiffness:
         x_ref = np.float64(raw[OXR])
         k_ref = np.float64(raw[OK]) * OBS_KREF_SCALE
         a_F, a_k = np.float64(a[0]), np.float64(a[1])
+        if cfg.harmonic:
+            dF = harmonic_row(st, np.float64(raw[OSIN]), np.float64(raw[OCOS]),
+                              x_ref - np.float64(raw[OX]), cfg)
+            a_F = min(max(a_F, -1.0), 1.0) + dF / cfg.force_N
         if cfg.adapt:
             a_k = estimate_row(st, x_ref, np.float64(raw[OVR]), x_ref - np.float64(raw[OX]),
                                k_ref, a_F, cfg)
@@ -578,18 +658,23 @@ class Frontend:
     def of(cls, features: FeatureSpec | None, dt_s: float,
            force_stiffness: tuple[float, float, float] | None,
            stiffness_adapt_s: float | None = None, params: Params = DEFAULT_PARAMS,
-           stiffness_adapt_velocity: bool = False) -> Frontend:
+           stiffness_adapt_velocity: bool = False, harmonic_force_N: float | None = None
+           ) -> Frontend:
         """From a policy's arguments: ``force_stiffness`` = (force_N, stiffness_rel, residual
-        scale [bar]) or None, ``stiffness_adapt_s`` only with it and
-        ``stiffness_adapt_velocity`` only with that."""
+        scale [bar]) or None, ``stiffness_adapt_s`` and ``harmonic_force_N`` only with it and
+        ``stiffness_adapt_velocity`` only with ``stiffness_adapt_s``."""
         tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
         velocity = check_adapt_velocity(stiffness_adapt_velocity, tau)
         if force_stiffness is None:
+            if harmonic_force_N is not None:
+                raise ValueError("harmonic_force_N needs force_stiffness (the correction is "
+                                 "added to ForceStiffnessAction's ΔF)")
             return cls(features, None, dt_s, None, params)
         force_N, stiffness_rel, scale_bar = force_stiffness
         return cls(features, ActionSpec(force_N=force_N, stiffness_rel=stiffness_rel,
                                         stiffness_adapt_s=tau,
-                                        stiffness_adapt_velocity=velocity),
+                                        stiffness_adapt_velocity=velocity,
+                                        harmonic_force_N=harmonic_force_N),
                    dt_s, scale_bar, params)
 
     def width(self, obs_dim: int) -> int:

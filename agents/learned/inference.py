@@ -102,12 +102,13 @@ class DeployedPolicy(Episodic):
                  action_low: np.ndarray | None = None, action_high: np.ndarray | None = None,
                  params: Params = DEFAULT_PARAMS, stiffness_adapt_s: float | None = None,
                  check: ObservationCheck | None = None,
-                 stiffness_adapt_velocity: bool = False) -> None:
+                 stiffness_adapt_velocity: bool = False,
+                 harmonic_force_N: float | None = None) -> None:
         self.check = check
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation={activation!r} must be one of {sorted(ACTIVATIONS)}")
         self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s, params,
-                                    stiffness_adapt_velocity)
+                                    stiffness_adapt_velocity, harmonic_force_N)
         self.features, self.dt = features, float(dt)
         n_feat = self.frontend.width(obs_dim)
         if layers[0][0].shape[1] != n_feat:
@@ -185,7 +186,8 @@ class DeployedPolicy(Episodic):
         space = policy.model.action_space
         return cls(layers, activation, obs_dim, policy.features, norm, policy.dt,
                    policy.force_stiffness, space.low, space.high, params,
-                   policy.stiffness_adapt_s, policy.check, policy.stiffness_adapt_velocity)
+                   policy.stiffness_adapt_s, policy.check, policy.stiffness_adapt_velocity,
+                   policy.harmonic_force_N)
 
     def reset(self) -> None:
         """The next observation starts an episode (integrals, previous action and stiffness
