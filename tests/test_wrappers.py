@@ -195,22 +195,28 @@ def test_force_stiffness_action_needs_the_residual_env_and_valid_actions():
 
 
 @pytest.mark.parametrize(
-    ("harmonics", "previous_action", "mask", "fine", "errors_only", "remod", "adapt"),
-    [(0, False, False, None, False, False, None), (1, True, False, None, False, False, None),
-     (2, True, True, 1e-3, False, True, None), (0, False, True, 5e-4, False, False, None),
-     (1, True, False, 5e-4, True, True, None), (1, True, False, None, True, True, 0.05)])
+    ("harmonics", "previous_action", "mask", "fine", "errors_only", "remod", "adapt", "hf"),
+    [(0, False, False, None, False, False, None, None),
+     (1, True, False, None, False, False, None, None),
+     (2, True, True, 1e-3, False, True, None, None),
+     (0, False, True, 5e-4, False, False, None, None),
+     (1, True, False, 5e-4, True, True, None, None),
+     (1, True, False, None, True, True, 0.05, None),
+     (1, True, False, None, True, True, 0.05, 1.0)])
 def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine, errors_only,
-                                          remod, adapt):
-    # observation features and action coordinates (with the stiffness estimator: its state
-    # restarts with each episode), across a same-step autoreset
+                                          remod, adapt, hf):
+    # observation features and action coordinates (with the stiffness estimator and the
+    # harmonic force correction: their state restarts with each episode), across a same-step
+    # autoreset
     kw = {"scenario": SHORT, "task": {"episode_s": 0.3}}
     feats = {"harmonics": harmonics, "previous_action": previous_action, "mask_pressures": mask,
              "fine_error_m": fine, "errors_only": errors_only, "remodulate": remod}
     single = ForceStiffnessAction(TrackingErrorObservation(
-        gym.make("MPALegResidual-v0", **kw), **feats), stiffness_adapt_s=adapt)
+        gym.make("MPALegResidual-v0", **kw), **feats), stiffness_adapt_s=adapt,
+        harmonic_force_N=hf)
     vec = ForceStiffnessVectorAction(TrackingErrorVectorObservation(gym.make_vec(
         "MPALegResidual-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw),
-        **feats), stiffness_adapt_s=adapt)
+        **feats), stiffness_adapt_s=adapt, harmonic_force_N=hf)
     m = 1 + 2 * harmonics
     b = 0 if errors_only else 9  # the env's observation, or nothing of it
     r = 2 * harmonics if remod else 0  # R_h, Q_h last
@@ -222,6 +228,7 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
     assert vec.single_observation_space.contains(vo[0])
     np.testing.assert_array_equal(so, vo[0])
     rng = np.random.default_rng(1)
+    charged = False  # the correction's integrals moved
     for _ in range(45):  # crosses the 30-step episode end
         a = rng.uniform(-1, 1, (2, 2))
         env_obs = single.env.env_obs  # the map works at the env's X̂ and k̂, shown or not
@@ -237,12 +244,18 @@ def test_wrappers_agree_single_and_vector(harmonics, previous_action, mask, fine
             np.testing.assert_array_equal(so[b + 2 + m:b + 4 + m], applied)
         if fine:  # the error again, clipped to ±fine
             assert so[d - r - 1] == np.float32(np.clip(e, -fine, fine))
+        charged = charged or bool(np.any(single.state["harm"][0] != 0.0))
         if te or tr:
             np.testing.assert_array_equal(so, vinfo["final_obs"][0])
             so, _ = single.reset()
             assert not np.any(so[b + 2:])  # integrals and previous action restart
+            # the action map's record restarts too, the autoreset row of the vector's as well
+            for st in (single.state[0], vec.state[0]):
+                assert not np.any(st["harm"]) and st["harm_env_m"] == 0.0
+                assert not st["est_started"]
         np.testing.assert_array_equal(so, vo[0])
     assert np.all(np.any(vo[:, b + 2:b + 2 + m] != 0.0, axis=0))  # every integral moves
+    assert charged == (hf is not None)
 
 
 def test_rate_penalty_charges_the_action_change_and_restarts_each_episode():
@@ -658,6 +671,30 @@ def test_harmonic_force_correction_is_the_documented_integral_action():
         shifted = a[k:k + 1].copy()
         shifted[0, 0] += dF[k] / force_N
         assert np.allclose(got, off.act(shifted, raw[k:k + 1], st_off), rtol=0, atol=1e-6), k
+    # the stiffness estimator pairs X̂ with the whole ΔF applied, the correction included
+    both = Frontend(None, ActionSpec(force_N=force_N, harmonic_force_N=bound,
+                                     stiffness_adapt_s=3.0), dt, 2.0)
+    st = both.new_state(1)
+    for k in range(t.size):
+        both.act(a[k:k + 1], raw[k:k + 1], st)
+        applied = np.clip(a[k, 0] + dF[k] / force_N, -1.0, 1.0) * force_N
+        assert abs(st["est_applied_N"][0] - applied) < 1e-6 * force_N, k
+
+
+def test_harmonic_force_correction_integrals_stop_at_their_bound():
+    # a steady 2ω error of a millimetre winds the integrals up to ±HARMONIC_LIMIT_M_S, where
+    # the kernel holds them, as the reference does (the output is bounded far earlier)
+    dt = 0.01
+    phi = 2 * np.pi * np.arange(12000) * dt / 3.0  # 120 s
+    raw = _leg_obs(1e-3 * np.sin(2 * phi), phi)
+    _, J = _harmonic_reference(raw, dt)
+    assert abs(J[-1, 0]) == HARMONIC_LIMIT_M_S  # the reference reaches the bound
+    front = Frontend(None, ActionSpec(harmonic_force_N=1.0), dt, 2.0)
+    st = front.new_state(1)
+    for k in range(raw.shape[0]):
+        front.act(np.zeros((1, 2)), raw[k:k + 1], st)
+    assert np.allclose(st["harm"][0], J[-1], rtol=0, atol=1e-6 * HARMONIC_LIMIT_M_S)
+    assert abs(st["harm"][0][0]) == HARMONIC_LIMIT_M_S
 
 
 def test_harmonic_force_correction_barely_feeds_a_first_harmonic_error_to_the_others():
@@ -682,8 +719,8 @@ def test_harmonic_force_correction_barely_feeds_a_first_harmonic_error_to_the_ot
 def test_harmonic_force_correction_removes_the_harmonics_a_feedback_loop_leaves():
     # closed loop on a plant the policy never saw: a fixed linear "network" (PID on the
     # features e, ė, I_0: a_F = (600 e + 30 ė + 3000 I_0) / force_N) leaves heldout_bladder's
-    # muscle nonlinearity at 2ω and 3ω (0.031 and 0.007 mm); with the correction at its
-    # default bound both fall, measured 20x and 5x over the last three periods of 30 s: at
+    # muscle nonlinearity at 2ω and 3ω (amplitudes 0.044 and 0.010 mm); with the correction at
+    # its default bound both fall, measured 21x and 5x over the last three periods of 30 s: at
     # least 5x and 2.5x asserted (half the margin of the 2nd, the 3rd's time constant is
     # longer at its lower dynamic stiffness)
     from mpa_gym.agents.learned.inference import DeployedPolicy

@@ -6,11 +6,11 @@ policy saw in training is what it sees when deployed, by construction; only the 
 normaliser differ between the paths (SB3's torch in float32, the compiled one in float64).
 
 Structure, in the sim engine's style (``mpa_gym.envs.sim``): compiled kernels over one row —
-``observe_row`` (features), ``act_row`` (stiffness estimator, force–stiffness map, the
-record of the applied action) — over one named, typed per-episode record (``STATE``, a
-numpy structured dtype; an episode starts from the zero record) and one settings record
-(``SETTINGS``, packed by name from ``FeatureSpec`` and ``ActionSpec`` by ``pack_settings``);
-``Frontend`` loops them over a batch for the Python callers.
+``observe_row`` (features), ``act_row`` (harmonic force correction, stiffness estimator,
+force–stiffness map, the record of the applied action) — over one named, typed per-episode
+record (``STATE``, a numpy structured dtype; an episode starts from the zero record) and one
+settings record (``SETTINGS``, packed by name from ``FeatureSpec`` and ``ActionSpec`` by
+``pack_settings``); ``Frontend`` loops them over a batch for the Python callers.
 
 Observation: the env observes X and X̂ separately; a network has to subtract two numbers that each
 vary by centimetres to see a sub-millimetre error, and a memoryless policy can only answer an
@@ -223,7 +223,10 @@ HARMONIC_FIRST, HARMONIC_LAST = 2, 3  # the reference harmonics it corrects
 HARMONIC_GAIN = 500.0  # [N/(m s)] g: a time constant of ~2 s on the nominal leg at the 2nd
 #                        harmonic; at 160 heldout_a kept 0.016 mm of its 0.035 mm 2nd-harmonic
 #                        error after 30 s, at 400–1000 under 0.006, at 2500 the noise grew
-HARMONIC_LIMIT_M_S = 0.02  # [m s] anti-windup bound of its integrals (the features' default)
+# [m s] bound of its integrals (the features' default). Its output saturates sooner, at
+# harmonic_force_N / g (0.002 m s at 1 N), so the integrals can wind up past that by up to
+# ten times: a bound against divergence, not an anti-windup at the output's saturation
+HARMONIC_LIMIT_M_S = 0.02
 HARMONIC_RELEASE_S = 10.0  # [s] release time of the error's envelope ê: over the half period
 #                            between two peaks of a steady error (1.5 s) ê falls by 14 %
 HARMONIC_MAX_N = 30.0  # [N] largest harmonic_force_N: the default config's force_N

@@ -8,8 +8,9 @@ allocated once: the controller front-end's features
 ``LearnedPolicy`` call), the observation normaliser (VecNormalize's running mean and variance, its
 clip), the policy MLP (SB3's ``mlp_extractor.policy_net`` then ``action_net``: the mean action,
 ``deterministic=True``), the clip to the action space, and the front-end's action map with its
-stiffness estimator (``mpa_gym.agents.learned.frontend.act_row``). Single threaded, no framework, no
-allocation per step: what a real-time loop can afford.
+harmonic force correction and stiffness estimator
+(``mpa_gym.agents.learned.frontend.act_row``). Single threaded, no framework, no allocation per
+step: what a real-time loop can afford.
 
 Only the normaliser and the network are its own; they equal ``LearnedPolicy.predict``'s (SB3's
 deterministic action) to 1e-6 (``tests/test_inference.py``): SB3 computes them in float32,
@@ -190,8 +191,8 @@ class DeployedPolicy(Episodic):
                    policy.harmonic_force_N)
 
     def reset(self) -> None:
-        """The next observation starts an episode (integrals, previous action and stiffness
-        estimator restart), for ``act`` and ``predict`` alike."""
+        """The next observation starts an episode (integrals, previous action, harmonic force
+        correction and stiffness estimator restart), for ``act`` and ``predict`` alike."""
         super().reset()
         self._fresh = True
 

@@ -292,8 +292,8 @@ class LearnedPolicy(Episodic):
     def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
                  deterministic: bool) -> tuple[np.ndarray, Any]:
         """Actions for one observation or a batch; ``state`` is each row's front-end record
-        (``frontend.STATE``: integrals, previous action, stiffness estimator), restarted where
-        ``episode_start`` or when it is None."""
+        (``frontend.STATE``: integrals, previous action, harmonic force correction, stiffness
+        estimator), restarted where ``episode_start`` or when it is None."""
         raw = np.asarray(observation, dtype=np.float32)
         single = raw.ndim == 1
         raw = raw.reshape(1, -1) if single else raw

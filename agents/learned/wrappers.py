@@ -118,8 +118,9 @@ class TrackingErrorVectorObservation(VectorWrapper):
 
 class _ForceStiffnessMap:
     """What both force–stiffness wrappers share: the front-end with the action map, the last
-    observation (X̂ and k̂ for the map), a ``STATE`` record per env (the stiffness estimator),
-    the last action (for the rate penalty) and the reset that restarts them."""
+    observation (X̂ and k̂ for the map), a ``STATE`` record per env (the harmonic force
+    correction and the stiffness estimator), the last action (for the rate penalty) and the
+    reset that restarts them."""
 
     env: Any
     _obs: np.ndarray | None
@@ -146,7 +147,7 @@ class _ForceStiffnessMap:
         self.frontend = Frontend(None, spec, env.unwrapped.cfg.dt_s, self.scale_bar)
         self._obs = None
         self._prev = np.zeros((n, 2))
-        self.state = new_state(n)  # the stiffness estimators, one per env
+        self.state = new_state(n)  # harmonic corrections and stiffness estimators, one per env
 
     def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(**kwargs)
