@@ -437,39 +437,48 @@ def test_the_action_kernel_and_the_estimator_read_the_reference_velocity():
     assert acted["est_cov_N_mps"][0] != 0.0
 
 
+def _default_config(**action_kwargs):
+    """The shipped training config, its ForceStiffnessAction kwargs updated by these."""
+    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
+    for wrapper in raw["MPALegResidual-v0"]["env_wrapper"]:
+        for name, kwargs in wrapper.items():
+            if name.endswith("ForceStiffnessAction"):
+                kwargs.update(action_kwargs)
+    return raw
+
+
 def test_a_config_with_the_option_gives_a_policy_with_it():
     # config → parse_config → the loaded policy's front-end (what evaluate, rollout and the
     # deployed path build from a run folder)
-    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
     for on in (True, False):
-        for wrapper in raw["MPALegResidual-v0"]["env_wrapper"]:
-            for name, kwargs in wrapper.items():
-                if name.endswith("ForceStiffnessAction"):
-                    kwargs["stiffness_adapt_velocity"] = on
+        raw = _default_config(stiffness_adapt_velocity=on)
         policy = LearnedPolicy.from_config(None, None, parse_config(raw, "cfg.yaml"))
         assert policy.stiffness_adapt_velocity is on
         assert policy.frontend.settings[0]["adapt_velocity"] == on
     # and the harmonic force correction's bound, or none
     for bound in (0.5, None):
-        for wrapper in raw["MPALegResidual-v0"]["env_wrapper"]:
-            for name, kwargs in wrapper.items():
-                if name.endswith("ForceStiffnessAction"):
-                    kwargs["harmonic_force_N"] = bound
+        raw = _default_config(harmonic_force_N=bound)
         policy = LearnedPolicy.from_config(None, None, parse_config(raw, "cfg.yaml"))
         assert policy.harmonic_force_N == bound
         assert policy.frontend.settings[0]["harmonic"] == (bound is not None)
         assert policy.frontend.settings[0]["harmonic_force_N"] == (bound or 0.0)
 
 
+def _refused_by_the_wrapper(field, out_of_range, allowed):
+    """``field`` of ForceStiffnessAction refuses each value of ``out_of_range`` naming the
+    range ``allowed`` (a regex), and a bool or a string as not a number."""
+    for bad in out_of_range:
+        with pytest.raises(ValueError, match=rf"{field}=.*allowed range {allowed}"):
+            ForceStiffnessAction(gym.make("MPALegResidual-v0"), **{field: bad})
+    for bad in (True, "3"):
+        with pytest.raises(ValueError, match=rf"{field}=.* is not a number"):
+            ForceStiffnessAction(gym.make("MPALegResidual-v0"), **{field: bad})
+
+
 def test_stiffness_estimator_setting_is_checked():
     # one check for the training wrapper, LearnedPolicy and DeployedPolicy (test_inference)
-    for bad in (0, -1.0, 61.0, float("nan")):
-        with pytest.raises(ValueError, match=r"stiffness_adapt_s=.*allowed range \(0, 60\] s "
-                                             r"\(or null: no estimator\)"):
-            ForceStiffnessAction(gym.make("MPALegResidual-v0"), stiffness_adapt_s=bad)
-    for bad in (True, "3"):
-        with pytest.raises(ValueError, match=r"stiffness_adapt_s=.* is not a number"):
-            ForceStiffnessAction(gym.make("MPALegResidual-v0"), stiffness_adapt_s=bad)
+    _refused_by_the_wrapper("stiffness_adapt_s", (0, -1.0, 61.0, float("nan")),
+                            r"\(0, 60\] s \(or null: no estimator\)")
     assert adapt_time_constant(None) is None and adapt_time_constant(3) == 3.0
     with pytest.raises(ValueError, match=r"stiffness_adapt_velocity='yes' must be true or "
                                          r"false"):
@@ -489,23 +498,13 @@ def test_harmonic_force_setting_is_checked():
     # DeployedPolicy; run folders written before the field read as without the correction
     assert ActionSpec().harmonic_force_N is None
     assert ActionSpec(harmonic_force_N=1).harmonic_force_N == 1.0
-    for bad in (0, -1.0, 31.0, float("nan")):
-        with pytest.raises(ValueError, match=r"harmonic_force_N=.*allowed range \(0, 30\] N "
-                                             r"\(or null: no harmonic force correction\)"):
-            ForceStiffnessAction(gym.make("MPALegResidual-v0"), harmonic_force_N=bad)
-    for bad in (True, "1"):
-        with pytest.raises(ValueError, match=r"harmonic_force_N=.* is not a number"):
-            ActionSpec(harmonic_force_N=bad)
+    _refused_by_the_wrapper("harmonic_force_N", (0, -1.0, 31.0, float("nan")),
+                            r"\(0, 30\] N \(or null: no harmonic force correction\)")
     with pytest.raises(ValueError, match="harmonic_force_N needs force_stiffness"):
         Frontend.of(None, 0.01, None, harmonic_force_N=1.0)
-    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    for wrapper in raw["MPALegResidual-v0"]["env_wrapper"]:
-        for name, kwargs in wrapper.items():
-            if name.endswith("ForceStiffnessAction"):
-                kwargs["harmonic_force_N"] = -2
     with pytest.raises(ConfigError, match=r"cfg\.yaml: MPALegResidual-v0\.env_wrapper: .*"
                                           r"harmonic_force_N=-2 N is outside"):
-        parse_config(raw, "cfg.yaml")
+        parse_config(_default_config(harmonic_force_N=-2), "cfg.yaml")
 
 
 def test_stiffness_time_constant_shorter_than_the_control_period_is_refused():
@@ -519,13 +518,8 @@ def test_stiffness_time_constant_shorter_than_the_control_period_is_refused():
         ForceStiffnessAction(env, stiffness_adapt_s=dt / 2)
     # a training config is refused at parsing, before a run folder exists, against its own
     # task's control period
-    raw = yaml.safe_load(open("configs/ppo_residual.yaml"))
-    hp = raw["MPALegResidual-v0"]
-    hp["env_kwargs"]["task"]["dt_s"] = 0.02
-    for wrapper in hp["env_wrapper"]:
-        for name, kwargs in wrapper.items():
-            if name.endswith("ForceStiffnessAction"):
-                kwargs["stiffness_adapt_s"] = 0.015
+    raw = _default_config(stiffness_adapt_s=0.015)
+    raw["MPALegResidual-v0"]["env_kwargs"]["task"]["dt_s"] = 0.02
     with pytest.raises(ConfigError, match=r"cfg\.yaml: MPALegResidual-v0\.env_wrapper: .*"
                                           r"ForceStiffnessAction: stiffness_adapt_s=0\.015 s .*"
                                           r"\[0\.02, 60\] s"):
