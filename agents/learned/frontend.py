@@ -105,10 +105,11 @@ do (CHANGELOG.md); a loop beneath with a resonance near these harmonics may not,
 a start's or a kick's transient barely charges the integrals. The estimator's weight, of e
 itself, would not do here: w e is then a saturating function of e, and a millimetre of
 first-harmonic error feeds the third harmonic's integrals through it (ff alone on
-heldout_bladder: 0.17 mm of third-harmonic error from 0.02), where ê holds steady over a
-period and w e stays linear in e. On the held-out plants, the error the
-policy leaves is at these harmonics (heldout_a: 0.035 mm of 0.045 at the 2nd, 0.009 at the
-3rd), which a first-harmonic pair cannot hold; features for them (``harmonics: 2`` or 3) let
+heldout_bladder: 0.17 mm of third-harmonic error from 0.02). ê changes little over a period
+(it falls by 14 % between two peaks), so w e stays nearly linear in e: the leak is about a
+seventh of the e-weighted one's (tests/test_wrappers.py). On the held-out plants, the error
+the policy leaves is at these harmonics (heldout_a: 0.035 mm of 0.045 at the 2nd, 0.009 at
+the 3rd), which a first-harmonic pair cannot hold; features for them (``harmonics: 2`` or 3) let
 the network learn the same correction but cost the paper's transients and the friction cells
 (CHANGELOG.md, issue 36). Like the estimator, it is a controller's computation from its own
 measurements and the reference, and runs in training, in the loaded policy and in the compiled
