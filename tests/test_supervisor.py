@@ -581,17 +581,21 @@ def test_config_declared_supervisor_states_only_what_differs(tmp_path):
     assert "in pid's loop (given 1 period(s) to settle)" in text
     assert text.endswith("; the loop starts at the stage predicted best on the model (each "
                          "stage's controller alone), the policy unless another is predicted "
-                         "over 1.1x better on position and no more than 1.1x worse on "
-                         "stiffness (position figures below 0.05 mm alike)")
+                         "over 1.1x better (position figures below 0.05 mm alike)")
     two = _config(tmp_path, {"stages": [DEFAULT_STAGES_CFG[0], {"controller": "mbfb"}]})
     assert two.supervisor.last_resort is None and two.supervisor.fallback == "mbfb"
     # the start chosen on the model: the default's ratio, another, or never (null)
-    assert two.supervisor.select == Selection(1.1)
+    # (on position alone: stiffness_ratio's default is null)
+    assert two.supervisor.select == Selection(1.1, None)
     assert _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": {"ratio": 1.5}}
-                   ).supervisor.select == Selection(1.5, 1.1)
+                   ).supervisor.select == Selection(1.5, None)
     alone = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG,
                                "select": {"stiffness_ratio": None}}).supervisor.select
     assert alone == Selection(1.1, None) and "stiffness" not in alone.describe()
+    both = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG,
+                              "select": {"stiffness_ratio": 1.1}}).supervisor.select
+    assert both == Selection(1.1, 1.1) and "no more than 1.1x worse on stiffness" in \
+        both.describe()
     off = _config(tmp_path, {"stages": DEFAULT_STAGES_CFG, "select": None}).supervisor
     assert off.select is None and "predicted" not in off.describe()
 
