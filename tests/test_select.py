@@ -101,6 +101,20 @@ def test_with_a_stiffness_ratio_a_later_stage_starts_only_if_not_worse_on_stiffn
     assert Selection(1.1, 1.1).start(mm, pct) == start
 
 
+def test_the_default_start_is_chosen_on_position_alone():
+    # The shipped spec (SupervisorSpec's defaults, the default config's section) starts the
+    # stage predicted better on position by over the ratio whatever its stiffness: the
+    # audit's 1.2x on position holds only if a policy 1.3-3x worse than rc is not kept for
+    # its stiffness (CHANGELOG, issue 36). The figures are the rows above that a
+    # stiffness_ratio of 1.1 keeps the policy on.
+    default = SupervisorSpec().select
+    assert default.stiffness_ratio is None
+    assert default.start([0.75, 0.48], [8.1, 14.1]) == FALLBACK
+    assert default.start([0.75, 0.40, 0.60], [8.1, 14.0, 8.0]) == FALLBACK
+    assert default.start([0.75, 0.70], [8.1, 1.0]) == POLICY  # within the ratio on position
+    assert default.start([0.75, 0.48]) == FALLBACK  # no stiffness figures needed
+
+
 def test_a_start_needs_a_figure_per_stage():
     with pytest.raises(ValueError, match=r"one figure per stage, at least two stages"):
         Selection().start([0.5])
