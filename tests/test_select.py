@@ -104,7 +104,7 @@ def test_with_a_stiffness_ratio_a_later_stage_starts_only_if_not_worse_on_stiffn
 def test_the_default_start_is_chosen_on_position_alone():
     # The shipped spec (SupervisorSpec's defaults, the default config's section) starts the
     # stage predicted better on position by over the ratio whatever its stiffness: the
-    # audit's 1.2x on position holds only if a policy 1.3-3x worse than rc is not kept for
+    # audit's 1.2x on position holds only if a policy 1.3-3.2x worse than rc is not kept for
     # its stiffness (CHANGELOG, issue 36). The figures are the rows above that a
     # stiffness_ratio of 1.1 keeps the policy on.
     default = SupervisorSpec().select

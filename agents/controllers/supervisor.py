@@ -240,10 +240,8 @@ class Selection:
 
     ratio: float = 1.1  # the policy starts unless its predicted RMSE exceeds ratio x the best
     # a later stage starts only if its predicted stiffness RMSE is at most this x the policy's
-    # (the residual task tracks both); None: chosen on position alone, so that the supervised
-    # loop tracks position within the random rigs' audit ratio of the best stage (with 1.1,
-    # 2 of 5 runs of the default config kept a policy 1.3-3.2x worse than rc on 5-6 of 50
-    # rigs; CHANGELOG, issue 36)
+    # (the residual task tracks both); None (the default config's, whose comment says why):
+    # chosen on position alone
     stiffness_ratio: float | None = None
 
     def __post_init__(self) -> None:
