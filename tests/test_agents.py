@@ -196,7 +196,7 @@ def test_ppo_trains_saves_loads_and_evaluates_to_the_same_numbers(tmp_path):
     st = (run / "model.zip").stat()
     os.utime(run / "model.zip", ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
     assert load_run(run)[0].model is not policy.model
-    assert policy.force_stiffness is not None
+    assert policy.action is not None
     sc = {"name": "ev", "duration_s": 3.0}
     r1 = evaluate([str(run)], [sc])["results"]["ev"]["run"]
     r2 = evaluate([str(run)], [sc])["results"]["ev"]["run"]

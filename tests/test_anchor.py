@@ -17,6 +17,7 @@ from mpa_gym.agents.learned.config import ConfigError, parse_config
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.policies import LearnedPolicy, load_policy, load_run
 from mpa_gym.agents.learned.wrappers import (
+    ActionSpec,
     FeatureSpec,
     ForceStiffnessAction,
     TrackingErrorObservation,
@@ -50,7 +51,8 @@ def _policy(anchored: bool, seed: int = 0) -> LearnedPolicy:
     model = PPO(RestAnchoredPolicy if anchored else "MlpPolicy", norm, seed=seed, device="cpu",
                 policy_kwargs={"net_arch": [64, 64], "ortho_init": False})
     set_rest(model)
-    return LearnedPolicy(model, norm, FeatureSpec(**FEATURES), 0.01, (20.0, 0.3, 1.5))
+    return LearnedPolicy(model, norm, FeatureSpec(**FEATURES), 0.01,
+                         ActionSpec(force_N=20.0, stiffness_rel=0.3), 1.5)
 
 
 def _at_rest(x_ref: float = 0.8, v_ref: float = 0.05) -> np.ndarray:

@@ -9,6 +9,7 @@ order around the network)."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import shutil
 import zipfile
@@ -21,6 +22,7 @@ from conftest import tiny_config
 from stable_baselines3.common.save_util import load_from_zip_file
 
 import mpa_gym  # noqa: F401
+from mpa_gym.agents.learned.frontend import ActionSpec
 from mpa_gym.agents.learned.inference import DeployedPolicy
 from mpa_gym.agents.learned.policies import LearnedPolicy, load_policy, load_run
 from mpa_gym.agents.training.train import train
@@ -69,22 +71,23 @@ def test_deployed_run_equals_sb3_deterministic_action(tiny_run):
     err, moved = compare(sb3, deployed, env)
     assert moved > 1e-3  # the actions are not trivially zero
     assert err < ATOL, err
-    # the estimator regressed on X̂ and V̂ (stiffness_adapt_velocity) reaches both paths alike
-    flip = not sb3.stiffness_adapt_velocity
-    sb3_v = LearnedPolicy(sb3.model, sb3.normalizer, sb3.features, sb3.dt, sb3.force_stiffness,
-                          sb3.stiffness_adapt_s, sb3.check, stiffness_adapt_velocity=flip)
-    deployed_v = DeployedPolicy.from_learned(sb3_v, env.observation_space.shape[0])
-    assert deployed_v.frontend.settings[0]["adapt_velocity"] == flip
-    err, moved = compare(sb3_v, deployed_v, env)
-    assert moved > 1e-3 and err < ATOL, err
-    # and the harmonic force correction, on or off
-    other = 0.5 if sb3.harmonic_force_N is None else None
-    sb3_h = LearnedPolicy(sb3.model, sb3.normalizer, sb3.features, sb3.dt, sb3.force_stiffness,
-                          sb3.stiffness_adapt_s, sb3.check, sb3.stiffness_adapt_velocity, other)
-    deployed_h = DeployedPolicy.from_learned(sb3_h, env.observation_space.shape[0])
-    assert deployed_h.frontend.settings[0]["harmonic"] == (other is not None)
-    err, moved = compare(sb3_h, deployed_h, env)
-    assert moved > 1e-3 and err < ATOL, err
+    # the estimator's regressions (on X̂ and V̂; in proportion to k̂) and the harmonic force
+    # correction, each on or off, reach both paths alike
+    action = sb3.action
+    for field, setting, changed in (
+            ("adapt_velocity", not action.stiffness_adapt_velocity,
+             {"stiffness_adapt_velocity": not action.stiffness_adapt_velocity}),
+            ("adapt_relative", not action.stiffness_adapt_relative,
+             {"stiffness_adapt_relative": not action.stiffness_adapt_relative}),
+            ("harmonic", action.harmonic_force_N is None,
+             {"harmonic_force_N": 0.5 if action.harmonic_force_N is None else None})):
+        sb3_c = LearnedPolicy(sb3.model, sb3.normalizer, sb3.features, sb3.dt,
+                              dataclasses.replace(action, **changed), sb3.residual_scale_bar,
+                              sb3.check)
+        deployed_c = DeployedPolicy.from_learned(sb3_c, env.observation_space.shape[0])
+        assert deployed_c.frontend.settings[0][field] == setting
+        err, moved = compare(sb3_c, deployed_c, env)
+        assert moved > 1e-3 and err < ATOL, (field, err)
 
 
 def _untrained(env_id, policy_kwargs, normalize=True, seed=0):
@@ -188,19 +191,20 @@ def test_both_policies_check_the_estimator_setting():
     # LearnedPolicy and DeployedPolicy are public; a bad time constant is refused by name, as
     # the training wrapper refuses it (one check:
     # mpa_gym.agents.learned.frontend.adapt_time_constant)
-    fs = (20.0, 0.3, 1.0)
     layers = [(np.zeros((2, 9)), np.zeros(2))]  # the env's 9 observations → (a_F, a_k)
-    makers = (lambda tau, fs=fs: LearnedPolicy(None, None, None, 0.01, fs, tau),
-              lambda tau, fs=fs: DeployedPolicy(layers, "Tanh", 9, force_stiffness=fs,
-                                                stiffness_adapt_s=tau))
+    makers = (lambda tau: LearnedPolicy(None, None, None, 0.01,
+                                        ActionSpec(stiffness_adapt_s=tau), 1.0),
+              lambda tau: DeployedPolicy(layers, "Tanh", 9, action=ActionSpec(
+                  stiffness_adapt_s=tau), residual_scale_bar=1.0))
     for make in makers:
         for bad in (0, -1.0, 61.0, float("nan")):
             with pytest.raises(ValueError, match=r"stiffness_adapt_s=.*allowed range "
                                                  r"\(0, 60\] s"):
                 make(bad)
-        with pytest.raises(ValueError, match="stiffness_adapt_s needs force_stiffness"):
-            make(3.0, None)
         make(3.0)
+    # the action map needs the residual env's scale
+    with pytest.raises(ValueError, match="needs residual_scale_bar"):
+        LearnedPolicy(None, None, None, 0.01, ActionSpec(stiffness_adapt_s=3.0))
 
 
 def _as_written_before_0_2(model_zip):

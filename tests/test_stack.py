@@ -3,6 +3,8 @@ one call per step, each row its own controller's."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -128,23 +130,23 @@ def test_what_does_not_stack_is_refused_by_name(run):
     with pytest.raises(ValueError, match=r"object does not stack \(no stack_rows\)"):
         stack([object(), object()])
     assert stacked([object(), object()]) is None and stacked([]) is None
-    other = LearnedPolicy(learned.model, None, learned.features, learned.dt,
-                          learned.force_stiffness, learned.stiffness_adapt_s)
+    other = LearnedPolicy(learned.model, None, learned.features, learned.dt, learned.action,
+                          learned.residual_scale_bar)
     with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
         stack([learned, other])
-    # the estimator's regression is part of the action map
-    flipped = LearnedPolicy(learned.model, learned.normalizer, learned.features, learned.dt,
-                            learned.force_stiffness, learned.stiffness_adapt_s,
-                            stiffness_adapt_velocity=not learned.stiffness_adapt_velocity)
-    with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
-        stack([learned, flipped])
-    # so is the harmonic force correction
-    harmonic = LearnedPolicy(learned.model, learned.normalizer, learned.features, learned.dt,
-                             learned.force_stiffness, learned.stiffness_adapt_s,
-                             stiffness_adapt_velocity=learned.stiffness_adapt_velocity,
-                             harmonic_force_N=0.5 if learned.harmonic_force_N is None else None)
-    with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
-        stack([learned, harmonic])
+    # the estimator's regressions and the harmonic force correction are part of the action map
+    action = learned.action
+    for changed in (
+            dataclasses.replace(action,
+                                stiffness_adapt_velocity=not action.stiffness_adapt_velocity),
+            dataclasses.replace(action,
+                                stiffness_adapt_relative=not action.stiffness_adapt_relative),
+            dataclasses.replace(action, harmonic_force_N=(0.5 if action.harmonic_force_N is None
+                                                          else None))):
+        mapped = LearnedPolicy(learned.model, learned.normalizer, learned.features, learned.dt,
+                               changed, learned.residual_scale_bar)
+        with pytest.raises(ValueError, match=r"one model, normaliser, features and action map"):
+            stack([learned, mapped])
     one = stack([learned, learned, learned])
     with pytest.raises(ValueError, match=r"stack of learned policies does not stack again"):
         stack([one, one])

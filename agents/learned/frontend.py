@@ -79,6 +79,24 @@ where about −40 N/m corrects the stiffness, and left an 8 % stiffness error (C
 issue 36). An update pairs X̂ with the ΔF applied one control step earlier (this step's is not
 known until â_k is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period,
 and turns a part c·V̂ of ΔF into an X̂ slope of c·ω²·dt (4.4 N/m for c = 100 N s/m).
+``stiffness_adapt_relative`` fits the excess as a share ρ of k̂, k − k̂ = ρ k̂, instead of a
+number of N/m. The designed k̂ is not constant along the motion: on the 20 mm, 3 s reference it
+spans 409–821 N/m, a function of X̂. A plant whose muscles are not the model's is stiffer or
+softer by a share of it (rc on heldout_bladder leaves 6.0 % of stiffness error, with 0.007 %
+per mm of slope against X̂), and a constant Δk leaves a relative error that varies with X̂ as
+k̂ does. The estimator then regresses ΔF on the path coordinate z = ∫ k̂ dX̂ (summed from the
+episode's first observation by the trapezoid rule) in place of X̂: the force deficit of a
+plant ρ stiffer is ρ z, its slope against z is ρ, and â_k = −ρ / ``stiffness_rel``, so Δk =
+−ρ k̂ follows k̂. v₀ becomes v₀ k̂² and the clip ±``stiffness_rel``. With k̂ constant, z = k̂
+(X̂ − X̂₀) and the two estimators apply the same correction. While a muscle's measured pressure
+is at its floor (under ``ADAPT_FLOOR_BAR``) the pressures the map asks for are not realised,
+so the ΔF applied is not the force the regression assumes; learning on it winds up (on
+load_1kg_kmin, whose design holds the flexor at 0 bar over 15 % of the period, the estimate
+lowered the stiffness until the flexor stayed at 0 bar and ran to its clip). There the
+estimate decays to zero at the estimator's rate instead, and nothing else is updated. The
+estimate that follows k̂ moves the pressures along the motion, and on a plant that is not the
+model that moves the force too (CHANGELOG.md, issue 36: the stiffness error halves and the
+position error grows).
 Off the training plants, an a_k learned from the error features can go the wrong way
 (CHANGELOG.md, 0.1.0, e2e9a73); the estimate needs no learning. It is a controller's
 computation from its own commands and the reference, like the features, never a plant
@@ -238,16 +256,16 @@ ADAPT_ERROR_M = 1e-3  # [m] tracking error at which an update's weight halves: a
 #                       kick's transient says nothing about the plant's stiffness
 ADAPT_VAR_M2 = 1e-5  # [m²] regulariser of X̂'s variance, (3.2 mm)², a twentieth of the 20 mm
 #                      reference's A²/2: a reference that barely moves gives no estimate
+ADAPT_FLOOR_BAR = 0.02  # [bar] a muscle's measured pressure below this is at its floor
 ADAPT_VAR_V2 = 4.4e-5  # [m²/s²] v₀ᵥ, regulariser of V̂'s variance, a twentieth of the 20 mm,
 #                        3 s reference's (Aω)²/2
 
 
-def adapt_time_constant(tau: Any, force_stiffness: bool = True, dt_s: float | None = None
-                        ) -> float | None:
+def adapt_time_constant(tau: Any, dt_s: float | None = None) -> float | None:
     """``stiffness_adapt_s`` checked: None (no estimator) or a time constant in
-    (0, ``ADAPT_MAX_S``] s, for a policy in force–stiffness coordinates (``force_stiffness``);
-    given the control period ``dt_s``, in [``dt_s``, ``ADAPT_MAX_S``]: an update's weight
-    dt/τ above 1 can turn the low-passed variances negative."""
+    (0, ``ADAPT_MAX_S``] s; given the control period ``dt_s``, in [``dt_s``,
+    ``ADAPT_MAX_S``]: an update's weight dt/τ above 1 can turn the low-passed variances
+    negative."""
     if tau is None:
         return None
     if dt_s is None:
@@ -256,19 +274,17 @@ def adapt_time_constant(tau: Any, force_stiffness: bool = True, dt_s: float | No
     else:
         tau = check_range("stiffness_adapt_s", tau, dt_s, ADAPT_MAX_S, unit="s",
                           note="at least the control period dt_s, or null: no estimator")
-    if not force_stiffness:
-        raise ValueError("stiffness_adapt_s needs force_stiffness (the estimator replaces "
-                         "the stiffness coordinate of ForceStiffnessAction)")
     return tau
 
 
-def check_adapt_velocity(flag: Any, tau: float | None) -> bool:
-    """``stiffness_adapt_velocity`` checked: a bool, true only with an estimator (``tau``)."""
+def check_adapt_flag(name: str, flag: Any, tau: float | None) -> bool:
+    """An estimator's option ``name`` (``stiffness_adapt_velocity``,
+    ``stiffness_adapt_relative``) checked: a bool, true only with an estimator (``tau``)."""
     if not isinstance(flag, bool | np.bool_):
-        raise ValueError(f"stiffness_adapt_velocity={flag!r} must be true or false")
+        raise ValueError(f"{name}={flag!r} must be true or false")
     if flag and tau is None:
-        raise ValueError("stiffness_adapt_velocity=true needs stiffness_adapt_s (it changes "
-                         "the stiffness estimator's regression)")
+        raise ValueError(f"{name}=true needs stiffness_adapt_s (it changes the stiffness "
+                         "estimator's regression)")
     return bool(flag)
 
 
@@ -285,6 +301,9 @@ class ActionSpec:
     # the estimator regresses ΔF on X̂ and V̂ together (module docs); False: on X̂ alone, as
     # run folders written before this field did
     stiffness_adapt_velocity: bool = False
+    # the estimator fits a stiffness excess in proportion to k̂ (module docs); False: in N/m,
+    # as run folders written before this field did
+    stiffness_adapt_relative: bool = False
     # [N] bound of the harmonic force correction added to ΔF (module docs); None: none, as
     # run folders written before this field
     harmonic_force_N: float | None = None
@@ -292,9 +311,9 @@ class ActionSpec:
     def __post_init__(self) -> None:
         object.__setattr__(self, "stiffness_adapt_s",
                            adapt_time_constant(self.stiffness_adapt_s))
-        object.__setattr__(self, "stiffness_adapt_velocity",
-                           check_adapt_velocity(self.stiffness_adapt_velocity,
-                                                self.stiffness_adapt_s))
+        for name in ("stiffness_adapt_velocity", "stiffness_adapt_relative"):
+            object.__setattr__(self, name, check_adapt_flag(name, getattr(self, name),
+                                                            self.stiffness_adapt_s))
         for name, lo, hi in (("force_N", None, 200.0), ("stiffness_rel", None, 1.0),
                              ("rate_penalty", 0.0, 100.0)):
             value = getattr(self, name)
@@ -318,20 +337,27 @@ STATE = np.dtype([
     #                                                   first FeatureSpec.n_integrals are used
     # the actions the env was last given, newest first, clipped to [−1, 1]
     ("prev", np.float64, (MAX_ACTION_HISTORY, 2)),
-    # the stiffness estimator (module docstring), all low-passed with time constant τ:
-    ("est_x_ref_m", np.float64),  # [m] mean of X̂
+    # the stiffness estimator (module docstring), all low-passed with time constant τ; its
+    # regressor q is X̂ [m], or with ActionSpec.stiffness_adapt_relative the path coordinate
+    # z = ∫ k̂ dX̂ [N]:
+    ("est_q_mean", np.float64),  # mean of q
     ("est_force_N", np.float64),  # [N] mean of the applied ΔF
-    ("est_cov_N_m", np.float64),  # [N m] covariance c of ΔF and X̂
-    ("est_var_m2", np.float64),  # [m²] variance v of X̂
-    # [N/m] the fitted slope, c / (v + v₀) (with stiffness_adapt_velocity: X̂'s coefficient
-    # of the regression on X̂ and V̂), clipped to ±stiffness_rel k̂, low-passed
-    ("est_slope_N_per_m", np.float64),
-    # with ActionSpec.stiffness_adapt_velocity: V̂'s mean, its covariances with ΔF and X̂, and
+    ("est_cov_Fq", np.float64),  # covariance c of ΔF and q
+    ("est_var_q", np.float64),  # variance v of q
+    # the fitted slope of ΔF against q, c / (v + v₀) (with stiffness_adapt_velocity: q's
+    # coefficient of the regression on q and V̂), clipped, low-passed: the stiffness excess,
+    # [N/m] (q = X̂) or as a share of k̂ (q = z)
+    ("est_slope", np.float64),
+    # with ActionSpec.stiffness_adapt_velocity: V̂'s mean, its covariances with ΔF and q, and
     # its variance
     ("est_v_ref_mps", np.float64),  # [m/s]
     ("est_cov_N_mps", np.float64),  # [N m/s]
-    ("est_cov_m2ps", np.float64),  # [m²/s]
-    ("est_var_m2ps2", np.float64),  # [m²/s²]
+    ("est_cov_qv", np.float64),
+    ("est_var_vv", np.float64),  # [m²/s²]
+    # with ActionSpec.stiffness_adapt_relative: z and the X̂, k̂ of its last step
+    ("est_path_N", np.float64),  # [N]
+    ("est_last_x_ref_m", np.float64),  # [m]
+    ("est_last_k_ref_N_per_m", np.float64),  # [N/m]
     ("est_applied_N", np.float64),  # [N] the ΔF applied last step, paired with the next X̂
     ("est_started", np.bool_),  # the estimator has had its first observation
     # [s] the rig's regulator dead time and lag, for FeatureSpec.delay_observation: the
@@ -363,6 +389,7 @@ SETTINGS = np.dtype([
     ("adapt", np.bool_),  # stiffness_adapt_s is not None
     ("stiffness_adapt_s", np.float64),
     ("adapt_velocity", np.bool_),  # ActionSpec.stiffness_adapt_velocity
+    ("adapt_relative", np.bool_),  # ActionSpec.stiffness_adapt_relative
     ("harmonic", np.bool_),  # ActionSpec.harmonic_force_N is not None
     ("harmonic_force_N", np.float64),
     ("dt_s", np.float64),  # [s] the control period: the integrals' and the estimator's step
@@ -395,6 +422,7 @@ def pack_settings(features: FeatureSpec | None, action: ActionSpec | None, dt_s:
         r["stiffness_adapt_s"] = adapt_time_constant(action.stiffness_adapt_s,
                                                      dt_s=r["dt_s"]) or 0.0
         r["adapt_velocity"] = action.stiffness_adapt_velocity
+        r["adapt_relative"] = action.stiffness_adapt_relative
         r["harmonic"] = action.harmonic_force_N is not None
         r["harmonic_force_N"] = action.harmonic_force_N or 0.0
     return rec
@@ -408,16 +436,19 @@ def restart_row(st):
     for i in range(st.prev.shape[0]):
         st.prev[i, 0] = 0.0
         st.prev[i, 1] = 0.0
-    st.est_x_ref_m = 0.0
+    st.est_q_mean = 0.0
     st.est_force_N = 0.0
-    st.est_cov_N_m = 0.0
-    st.est_var_m2 = 0.0
-    st.est_slope_N_per_m = 0.0
+    st.est_cov_Fq = 0.0
+    st.est_var_q = 0.0
+    st.est_slope = 0.0
     st.est_applied_N = 0.0
     st.est_v_ref_mps = 0.0
     st.est_cov_N_mps = 0.0
-    st.est_cov_m2ps = 0.0
-    st.est_var_m2ps2 = 0.0
+    st.est_cov_qv = 0.0
+    st.est_var_vv = 0.0
+    st.est_path_N = 0.0
+    st.est_last_x_ref_m = 0.0
+    st.est_last_k_ref_N_per_m = 0.0
     st.est_started = False
     for i in range(st.harm.shape[0]):
         st.harm[i] = 0.0
@@ -488,7 +519,7 @@ def observe_row(raw, st, fresh, cfg, feat):
 
 
 @numba.njit(**JIT)
-def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, cfg):
+def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
     """One step of the stiffness estimator (module docstring) at reference X̂ = ``x_ref``
     [m], V̂ = ``v_ref`` [m/s] (kept at the start, used with ``cfg.adapt_velocity`` only),
     tracking error ``e`` [m] and k̂ = ``k_ref`` [N/m], its record fields updated → â_k; then
@@ -496,38 +527,51 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, cfg):
     X̂."""
     if not st.est_started:
         st.est_force_N = 0.0
-        st.est_cov_N_m = 0.0
-        st.est_var_m2 = 0.0
-        st.est_slope_N_per_m = 0.0
+        st.est_cov_Fq = 0.0
+        st.est_var_q = 0.0
+        st.est_slope = 0.0
         st.est_applied_N = 0.0
         st.est_cov_N_mps = 0.0
-        st.est_cov_m2ps = 0.0
-        st.est_var_m2ps2 = 0.0
-        st.est_x_ref_m, st.est_v_ref_mps, st.est_started = x_ref, v_ref, True
+        st.est_cov_qv = 0.0
+        st.est_var_vv = 0.0
+        st.est_path_N = 0.0
+        st.est_last_x_ref_m, st.est_last_k_ref_N_per_m = x_ref, k_ref
+        st.est_q_mean = 0.0 if cfg.adapt_relative else x_ref
+        st.est_v_ref_mps, st.est_started = v_ref, True
+    if cfg.adapt_relative:  # z += k̂ dX̂, by the trapezoid rule
+        st.est_path_N += (0.5 * (k_ref + st.est_last_k_ref_N_per_m)
+                          * (x_ref - st.est_last_x_ref_m))
+        st.est_last_x_ref_m, st.est_last_k_ref_N_per_m = x_ref, k_ref
+        q, v0, span = st.est_path_N, ADAPT_VAR_M2 * k_ref * k_ref, cfg.stiffness_rel
+    else:
+        q, v0, span = x_ref, ADAPT_VAR_M2, cfg.stiffness_rel * abs(k_ref)
     al = cfg.dt_s / cfg.stiffness_adapt_s / (1.0 + (e / ADAPT_ERROR_M) ** 2)
-    st.est_x_ref_m += al * (x_ref - st.est_x_ref_m)
+    if cfg.adapt_relative and p_min_bar < ADAPT_FLOOR_BAR:
+        st.est_slope -= al * st.est_slope
+        st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
+        return min(max(-st.est_slope / cfg.stiffness_rel, -1.0), 1.0)
+    st.est_q_mean += al * (q - st.est_q_mean)
     st.est_force_N += al * (st.est_applied_N - st.est_force_N)
-    dx, dF = x_ref - st.est_x_ref_m, st.est_applied_N - st.est_force_N
-    st.est_cov_N_m += al * (dF * dx - st.est_cov_N_m)
-    st.est_var_m2 += al * (dx * dx - st.est_var_m2)
+    dq, dF = q - st.est_q_mean, st.est_applied_N - st.est_force_N
+    st.est_cov_Fq += al * (dF * dq - st.est_cov_Fq)
+    st.est_var_q += al * (dq * dq - st.est_var_q)
     if cfg.adapt_velocity:
         st.est_v_ref_mps += al * (v_ref - st.est_v_ref_mps)
         dv = v_ref - st.est_v_ref_mps
         st.est_cov_N_mps += al * (dF * dv - st.est_cov_N_mps)
-        st.est_cov_m2ps += al * (dx * dv - st.est_cov_m2ps)
-        st.est_var_m2ps2 += al * (dv * dv - st.est_var_m2ps2)
-    span = cfg.stiffness_rel * abs(k_ref)
+        st.est_cov_qv += al * (dq * dv - st.est_cov_qv)
+        st.est_var_vv += al * (dv * dv - st.est_var_vv)
     a_k = 0.0
     if span > 0.0:
-        v = st.est_var_m2 + ADAPT_VAR_M2
-        if cfg.adapt_velocity:  # X̂'s coefficient of the regression on (X̂, V̂)
-            vv, cxv = st.est_var_m2ps2 + ADAPT_VAR_V2, st.est_cov_m2ps
-            fit = (st.est_cov_N_m * vv - cxv * st.est_cov_N_mps) / (v * vv - cxv * cxv)
+        v = st.est_var_q + v0
+        if cfg.adapt_velocity:  # q's coefficient of the regression on (q, V̂)
+            vv, cqv = st.est_var_vv + ADAPT_VAR_V2, st.est_cov_qv
+            fit = (st.est_cov_Fq * vv - cqv * st.est_cov_N_mps) / (v * vv - cqv * cqv)
         else:
-            fit = st.est_cov_N_m / v
+            fit = st.est_cov_Fq / v
         slope = min(max(fit, -span), span)
-        st.est_slope_N_per_m += al * (slope - st.est_slope_N_per_m)
-        a_k = min(max(-st.est_slope_N_per_m / span, -1.0), 1.0)
+        st.est_slope += al * (slope - st.est_slope)
+        a_k = min(max(-st.est_slope / span, -1.0), 1.0)
     st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
     return a_k
 
@@ -590,7 +634,7 @@ def act_row(a, raw, st, cfg, c, out):
             a_F = min(max(a_F, -1.0), 1.0) + dF / cfg.force_N
         if cfg.adapt:
             a_k = estimate_row(st, x_ref, np.float64(raw[OVR]), x_ref - np.float64(raw[OX]),
-                               k_ref, a_F, cfg)
+                               k_ref, a_F, min(np.float64(raw[OPE]), np.float64(raw[OPF])), cfg)
         force_stiffness_row(a_F, a_k, x_ref, k_ref, cfg, c, out)
     else:
         out[0] = a[0]
@@ -620,7 +664,8 @@ def _estimate_rows(a_F, raw, state, cfg, out):
         x_ref = np.float64(raw[i, OXR])
         out[i] = estimate_row(state[i], x_ref, np.float64(raw[i, OVR]),
                               x_ref - np.float64(raw[i, OX]),
-                              np.float64(raw[i, OK]) * OBS_KREF_SCALE, a_F[i], cfg[0])
+                              np.float64(raw[i, OK]) * OBS_KREF_SCALE, a_F[i],
+                              min(np.float64(raw[i, OPE]), np.float64(raw[i, OPF])), cfg[0])
 
 
 @functools.lru_cache(maxsize=8)
@@ -634,7 +679,7 @@ class Frontend:
     ``dt_s``) over batches of rows: the row kernels looped, for the Python callers. The state
     is theirs: an array of ``STATE`` records, one per row (``new_state``).
 
-    ``Frontend.of`` builds one from a policy's arguments."""
+    ``action`` needs ``residual_scale_bar``, the residual env's scale [bar]."""
 
     def __init__(self, features: FeatureSpec | None, action: ActionSpec | None, dt_s: float,
                  residual_scale_bar: float | None = None, params: Params = DEFAULT_PARAMS
@@ -657,29 +702,6 @@ class Frontend:
         st = new_state(n)
         st["delay_s"] = told
         return st
-
-    @classmethod
-    def of(cls, features: FeatureSpec | None, dt_s: float,
-           force_stiffness: tuple[float, float, float] | None,
-           stiffness_adapt_s: float | None = None, params: Params = DEFAULT_PARAMS,
-           stiffness_adapt_velocity: bool = False, harmonic_force_N: float | None = None
-           ) -> Frontend:
-        """From a policy's arguments: ``force_stiffness`` = (force_N, stiffness_rel, residual
-        scale [bar]) or None, ``stiffness_adapt_s`` and ``harmonic_force_N`` only with it and
-        ``stiffness_adapt_velocity`` only with ``stiffness_adapt_s``."""
-        tau = adapt_time_constant(stiffness_adapt_s, force_stiffness is not None)
-        velocity = check_adapt_velocity(stiffness_adapt_velocity, tau)
-        if force_stiffness is None:
-            if harmonic_force_N is not None:
-                raise ValueError("harmonic_force_N needs force_stiffness (the correction is "
-                                 "added to ForceStiffnessAction's ΔF)")
-            return cls(features, None, dt_s, None, params)
-        force_N, stiffness_rel, scale_bar = force_stiffness
-        return cls(features, ActionSpec(force_N=force_N, stiffness_rel=stiffness_rel,
-                                        stiffness_adapt_s=tau,
-                                        stiffness_adapt_velocity=velocity,
-                                        harmonic_force_N=harmonic_force_N),
-                   dt_s, scale_bar, params)
 
     def width(self, obs_dim: int) -> int:
         """Number of features of an observation with ``obs_dim`` columns."""

@@ -26,7 +26,14 @@ import numba
 import numpy as np
 
 from mpa_gym.agents.learned.episodic import Episodic, ObservationCheck
-from mpa_gym.agents.learned.frontend import FeatureSpec, Frontend, act_row, new_state, observe_row
+from mpa_gym.agents.learned.frontend import (
+    ActionSpec,
+    FeatureSpec,
+    Frontend,
+    act_row,
+    new_state,
+    observe_row,
+)
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -99,17 +106,15 @@ class DeployedPolicy(Episodic):
     def __init__(self, layers: list[tuple[np.ndarray, np.ndarray]], activation: str,
                  obs_dim: int, features: FeatureSpec | None = None,
                  normalizer: tuple[np.ndarray, np.ndarray, float, float] | None = None,
-                 dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
+                 dt: float = 0.01, action: ActionSpec | None = None,
+                 residual_scale_bar: float | None = None,
                  action_low: np.ndarray | None = None, action_high: np.ndarray | None = None,
-                 params: Params = DEFAULT_PARAMS, stiffness_adapt_s: float | None = None,
-                 check: ObservationCheck | None = None,
-                 stiffness_adapt_velocity: bool = False,
-                 harmonic_force_N: float | None = None) -> None:
+                 params: Params = DEFAULT_PARAMS, check: ObservationCheck | None = None
+                 ) -> None:
         self.check = check
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation={activation!r} must be one of {sorted(ACTIVATIONS)}")
-        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s, params,
-                                    stiffness_adapt_velocity, harmonic_force_N)
+        self.frontend = Frontend(features, action, dt, residual_scale_bar, params)
         self.features, self.dt = features, float(dt)
         n_feat = self.frontend.width(obs_dim)
         if layers[0][0].shape[1] != n_feat:
@@ -186,9 +191,8 @@ class DeployedPolicy(Episodic):
             norm = (nz.obs_rms.mean, nz.obs_rms.var, float(nz.epsilon), float(nz.clip_obs))
         space = policy.model.action_space
         return cls(layers, activation, obs_dim, policy.features, norm, policy.dt,
-                   policy.force_stiffness, space.low, space.high, params,
-                   policy.stiffness_adapt_s, policy.check, policy.stiffness_adapt_velocity,
-                   policy.harmonic_force_N)
+                   policy.frontend.action, policy.residual_scale_bar, space.low, space.high,
+                   params, policy.check)
 
     def reset(self) -> None:
         """The next observation starts an episode (integrals, previous action, harmonic force

@@ -187,43 +187,28 @@ class LearnedPolicy(Episodic):
     their integrals and the previous action are the returned state), normalises with the
     training statistics, and returns the deterministic action — mapped from force–stiffness
     coordinates to the env's residual action when the model was trained with
-    ``ForceStiffnessAction`` (``force_stiffness`` = (force_N, stiffness_rel, residual scale)),
-    with its stiffness estimator and harmonic force correction if it had them
-    (``stiffness_adapt_s``, ``harmonic_force_N``; their state is part of the returned
-    state). The state not passed back is kept (``Episodic``: per row of a batch, restarted
-    by ``reset()`` or ``episode_start``); ``check`` (set by :meth:`from_config`:
-    the run's env id) refuses an observation that is not that env's own.
+    ``ForceStiffnessAction`` (``action``, its settings, and the residual env's
+    ``residual_scale_bar``), with its stiffness estimator and harmonic force correction if
+    it had them (their state is part of the returned state). The state not passed back is
+    kept (``Episodic``: per row of a batch, restarted by ``reset()`` or ``episode_start``);
+    ``check`` (set by :meth:`from_config`: the run's env id) refuses an observation that is
+    not that env's own.
     """
 
     def __init__(self, model: Any, normalizer: Any = None, features: FeatureSpec | None = None,
-                 dt: float = 0.01, force_stiffness: tuple[float, float, float] | None = None,
-                 stiffness_adapt_s: float | None = None,
-                 check: ObservationCheck | None = None,
-                 stiffness_adapt_velocity: bool = False,
-                 harmonic_force_N: float | None = None) -> None:
+                 dt: float = 0.01, action: ActionSpec | None = None,
+                 residual_scale_bar: float | None = None,
+                 check: ObservationCheck | None = None) -> None:
         self.check = check
-        self.frontend = Frontend.of(features, dt, force_stiffness, stiffness_adapt_s,
-                                    stiffness_adapt_velocity=stiffness_adapt_velocity,
-                                    harmonic_force_N=harmonic_force_N)
+        self.frontend = Frontend(features, action, dt, residual_scale_bar)
         self.model, self.normalizer, self.features, self.dt = model, normalizer, features, dt
-        self.force_stiffness = force_stiffness
+        self.residual_scale_bar = residual_scale_bar
 
     @property
-    def stiffness_adapt_s(self) -> float | None:
-        """The stiffness estimator's time constant [s] (its front-end's), None: none."""
-        action = self.frontend.action
-        return None if action is None else action.stiffness_adapt_s
-
-    @property
-    def stiffness_adapt_velocity(self) -> bool:
-        """Whether the estimator regresses on X̂ and V̂ (its front-end's)."""
-        return self.frontend.action is not None and self.frontend.action.stiffness_adapt_velocity
-
-    @property
-    def harmonic_force_N(self) -> float | None:
-        """The harmonic force correction's bound [N] (its front-end's), None: none."""
-        action = self.frontend.action
-        return None if action is None else action.harmonic_force_N
+    def action(self) -> ActionSpec | None:
+        """The action map (``ForceStiffnessAction``'s settings), None: the network's action
+        as it is."""
+        return self.frontend.action
 
     @classmethod
     def stack_rows(cls, policies: list[LearnedPolicy]) -> LearnedPolicy:
@@ -236,15 +221,14 @@ class LearnedPolicy(Episodic):
         for p in policies:
             if (p.model is not first.model or p.normalizer is not first.normalizer
                     or p.features != first.features or p.dt != first.dt
-                    or p.force_stiffness != first.force_stiffness
-                    or p.frontend.action != first.frontend.action):
+                    or p.action != first.action
+                    or p.residual_scale_bar != first.residual_scale_bar):
                 raise ValueError("stack: learned policies of one model, normaliser, features "
                                  "and action map only")
             if np.ndim(p.frontend.known_delay_s) != 1:
                 raise ValueError("stack: a stack of learned policies does not stack again")
-        out = cls(first.model, first.normalizer, first.features, first.dt,
-                  first.force_stiffness, first.stiffness_adapt_s, first.check,
-                  first.stiffness_adapt_velocity, first.harmonic_force_N)
+        out = cls(first.model, first.normalizer, first.features, first.dt, first.action,
+                  first.residual_scale_bar, first.check)
         out.frontend.known_delay_s = np.array([p.frontend.known_delay_s for p in policies],
                                               dtype=np.float64).reshape(len(policies), 2)
         return out
@@ -279,15 +263,10 @@ class LearnedPolicy(Episodic):
         ``run``, which its errors name)."""
         task_cfg = TaskConfig.from_kwargs(cfg.env_kwargs.get("task") or {})
         ow, aw = cfg.observation_wrapper, cfg.action_wrapper
-        fs, tau, velocity, harmonic = None, None, False, None
-        if aw is not None:
-            spec = ActionSpec(**aw)
-            fs = (spec.force_N, spec.stiffness_rel, task_cfg.residual_scale_bar)
-            tau, velocity = spec.stiffness_adapt_s, spec.stiffness_adapt_velocity
-            harmonic = spec.harmonic_force_N
         return cls(model, normalizer, FeatureSpec(**ow) if ow is not None else None,
-                   task_cfg.dt_s, fs, tau, ObservationCheck(cfg.env_id, run), velocity,
-                   harmonic)
+                   task_cfg.dt_s, ActionSpec(**aw) if aw is not None else None,
+                   task_cfg.residual_scale_bar if aw is not None else None,
+                   ObservationCheck(cfg.env_id, run))
 
     def _predict(self, observation: np.ndarray, state: Any, episode_start: np.ndarray | None,
                  deterministic: bool) -> tuple[np.ndarray, Any]:
