@@ -17,6 +17,7 @@ from conftest import REALTIME, serving, tiny_config
 
 import mpa_gym  # noqa: F401
 from mpa_gym.agents.cli import show_rollout
+from mpa_gym.agents.controllers import baselines
 from mpa_gym.agents.controllers.baselines import BAR, BASELINES, Policy, make_baseline
 from mpa_gym.agents.controllers.supervisor import (
     ARM_PERIODS,
@@ -31,6 +32,7 @@ from mpa_gym.agents.controllers.supervisor import (
     SupervisorSpec,
     took_over,
 )
+from mpa_gym.agents.evaluation.episodes import Job, run_episodes
 from mpa_gym.agents.evaluation.evaluate import evaluate
 from mpa_gym.agents.evaluation.robustness import _cell as robustness_cell
 from mpa_gym.agents.evaluation.robustness import _scenario, cell_metrics, run_batches
@@ -306,6 +308,36 @@ def test_fallback_rescues_a_residual_that_destabilises_a_slow_regulator():
         assert s["fallback_s"] is not None and s["fallback_s"] < 21.0 - 3 * T
         assert ref["fallback_s"] is None  # an unsupervised controller reports none
     assert ARM_PERIODS * T < supervised[0]["fallback_s"] and supervised[1]["fallback_s"] < T
+
+
+@pytest.mark.parametrize("name", ["pid", "rc", "mbfb"])
+def test_a_baseline_commands_the_same_pressures_in_an_env_of_any_residual_scale(name,
+                                                                                 monkeypatch):
+    # A supervisor's fallback acts in the learned policy's env (the default config's residual
+    # scale is 2 bar); the report's column for the same baseline in the default env (1 bar).
+    # Its authority is its own (baselines.AUTHORITY_BAR), so on a plant where it saturates
+    # both envs see the same pressure commands, to the float32 rounding of the action (the
+    # action is u / scale: 6e-8 of the correction; 1e-6 bar allows the loop to carry it
+    # over 12 s). With the env's scale as its clip they differed by up to 1 bar (on random
+    # rig 22, rc 1.36 mm against 2.62).
+    sc = _sc(12.0)
+    # random rig 22 rounded: a heavy leg (4.2 + 2.1 kg) behind a slow, slew-limited regulator
+    plant = {"mass_kg": 4.2, "extra_mass_kg": 2.1, "pressure_dead_time_s": 0.043,
+             "pressure_slew_bar_per_s": 10.0, "braid_friction_ratio": 0.025,
+             "slider_friction_N": 1.4}
+
+    def commands(scale):
+        task = {"residual_scale_bar": scale}
+        job = Job(sc, make_baseline(name, sc, task=task), "MPALegResidual-v0", task,
+                  plant=plant, seed=3)
+        return run_episodes([job], 3)[0].pressure_cmd_bar
+
+    one = commands(1.0)
+    assert np.max(np.abs(commands(2.0) - one)) < 1e-6
+    # the authority binds on this plant (the check can fail): given 2 bar, the baseline
+    # commands other pressures
+    monkeypatch.setattr(baselines, "AUTHORITY_BAR", 2.0)
+    assert np.max(np.abs(commands(2.0) - one)) > 0.1
 
 
 def test_supervisor_never_drives_a_healthy_loop_and_changes_nothing_there():

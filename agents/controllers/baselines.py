@@ -37,6 +37,14 @@ saturated — the residual clip or the pressure limits — the integrator does n
 error that pushes further into the saturation). Their gains are tuned by
 ``mpa_gym.agents.training.tune_baselines`` (Optuna TPE) on the training plants of the PPO config;
 ``TUNED_ON`` says on what and with which budget, and the evaluation report repeats it.
+
+A baseline adds at most ``AUTHORITY_BAR`` to each feedforward pressure, whatever env it acts
+in: the residual env's default scale, in which the baselines are tuned and evaluated. A
+supervisor's fallback acts in the learned policy's env, whose scale is the run's (the default
+config's is 2 bar). With the env's scale as its clip, the rc a supervisor started was not the
+rc of the report's column: on random rig 22 it tracked at 1.36 mm against the column's 2.62,
+on rig 38 at 2.28 against 1.91. With its own authority it is the same controller, so a figure
+the report marks as a fallback's is that baseline's.
 """
 
 from __future__ import annotations
@@ -62,6 +70,10 @@ from mpa_gym.task.contract import OBS_VREF as OVR
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
 from mpa_gym.task.plan import TaskPlan, make_plan
+
+# [bar] the largest correction a baseline adds to each feedforward pressure (module docs):
+# the residual env's default scale, whatever env the baseline acts in
+AUTHORITY_BAR = TaskConfig().residual_scale_bar
 
 
 class Policy(Protocol):
@@ -91,6 +103,12 @@ class _PlanPolicy:
     @property
     def cfg(self) -> TaskConfig:
         return self.plan.cfg
+
+    @property
+    def action_limit(self) -> float:
+        """The largest residual action it gives, in the env's [−1, 1] units: ``AUTHORITY_BAR``
+        over the env's scale (1 where the env's scale is smaller)."""
+        return min(AUTHORITY_BAR / self.cfg.residual_scale_bar, 1.0)
 
     @classmethod
     def stack_rows(cls, policies: list[_PlanPolicy]) -> _PlanPolicy:
@@ -193,8 +211,9 @@ class _PlanPolicy:
         (+u, −u) in the env's [−1, 1] units, clipped, the clipping recorded in ``st``
         (``_saturated``); one row unbatched if ``single``."""
         raw = np.stack([u, -u], axis=-1) / self.cfg.residual_scale_bar
-        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
-        self._saturated(st, u, np.abs(raw[:, 0]) > 1.0)
+        lim = self.action_limit
+        a = np.clip(raw, -lim, lim).astype(np.float32)
+        self._saturated(st, u, np.abs(raw[:, 0]) > lim)
         return (a[0] if single else a), st
 
     @staticmethod
@@ -581,9 +600,10 @@ class StiffnessFeedback(_PlanPolicy):
             pressures = np.linalg.solve(A, rhs[..., None])[..., 0]
         limited = np.clip(pressures, 0.0, self.cfg.p_max_bar * BAR)
         raw = (limited - self._feedforward(obs)) / (self.cfg.residual_scale_bar * BAR)
-        a = np.clip(raw, -1.0, 1.0).astype(np.float32)
+        lim = self.action_limit
+        a = np.clip(raw, -lim, lim).astype(np.float32)
         with np.errstate(invalid="ignore"):
-            clipped = np.any((limited != pressures) | (np.abs(raw) > 1.0), axis=-1)
+            clipped = np.any((limited != pressures) | (np.abs(raw) > lim), axis=-1)
         a[~np.isfinite(a)] = 0.0  # no model answer (state outside its domain): feedforward only
         self._saturated(st, correction, clipped)
         return (a[0] if single else a), st
