@@ -316,10 +316,10 @@ def test_a_baseline_commands_the_same_pressures_in_an_env_of_any_residual_scale(
     # A supervisor's fallback acts in the learned policy's env (the default config's residual
     # scale is 2 bar); the report's column for the same baseline in the default env (1 bar).
     # Its authority is its own (baselines.AUTHORITY_BAR), so on a plant where it saturates
-    # both envs see the same pressure commands, to the float32 rounding of the action (the
-    # action is u / scale: 6e-8 of the correction; 1e-6 bar allows the loop to carry it
-    # over 12 s). With the env's scale as its clip they differed by up to 1 bar (on random
-    # rig 22, rc 1.36 mm against 2.62).
+    # an env of any scale sees the same pressure commands, to the float32 rounding of the
+    # action u / scale (exact at 2; 6e-8 bar measured at 1.5 and 3; 1e-6 bar lets the loop
+    # carry it over 12 s). With the env's scale as its clip they differed by up to 1 bar (on
+    # random rig 22, rc 1.36 mm against 2.62).
     sc = _sc(12.0)
     # random rig 22 rounded: a heavy leg (4.2 + 2.1 kg) behind a slow, slew-limited regulator
     plant = {"mass_kg": 4.2, "extra_mass_kg": 2.1, "pressure_dead_time_s": 0.043,
@@ -333,7 +333,8 @@ def test_a_baseline_commands_the_same_pressures_in_an_env_of_any_residual_scale(
         return run_episodes([job], 3)[0].pressure_cmd_bar
 
     one = commands(1.0)
-    assert np.max(np.abs(commands(2.0) - one)) < 1e-6
+    for scale in (1.5, 2.0, 3.0):
+        assert np.max(np.abs(commands(scale) - one)) < 1e-6, scale
     # the authority binds on this plant (the check can fail): given 2 bar, the baseline
     # commands other pressures
     monkeypatch.setattr(baselines, "AUTHORITY_BAR", 2.0)
@@ -401,6 +402,33 @@ def test_take_over_continues_the_held_command(name):
                                   + r * scale) for r in (held, a)]
         np.testing.assert_allclose(force[1], force[0], atol=1e-6)
         assert not np.allclose(a, held)  # its stiffness is k̂, not the held command's
+
+
+@pytest.mark.parametrize("name", ["pid", "rc", "afc"])
+def test_take_over_in_a_wider_env_starts_at_the_fallbacks_own_authority(name):
+    # In a 2-bar env (a learned run's) the policy may hold ±1.8 bar; the fallback may command
+    # ±1 bar (AUTHORITY_BAR). It continues the part it can make: its integrator holds 1 bar,
+    # not 1.8, so one step of error of the other sign moves its output off the clip at once
+    # (a wound-up integrator would hold it there for 0.8 bar / Ki of ∫e). At exact tracking
+    # the first output is the clip, ±0.5 in the env's units.
+    task = {"residual_scale_bar": 2.0}
+    env = gym.make("MPALegResidual-v0", task=task)
+    obs, _ = env.reset(seed=3)
+    obs = obs[None].copy()
+    obs[:, OBS_X] = obs[:, OBS_XREF]
+    obs[:, OBS_V], obs[:, OBS_VREF] = 0.0, 0.0
+    fb = make_baseline(name, "nominal", task=task)
+    held = np.array([[0.9, -0.9]])
+    history = np.repeat(held[:, :, None], 300, axis=-1) if name == "afc" else None
+    state = fb.take_over(obs, held, None, np.array([True]), history=history)
+    if name == "afc":  # no proportional path (its output moves over periods): θ₀ is 1 bar
+        assert np.asarray(state)[0, 0] == pytest.approx(1.0)
+    a, state = fb.predict(obs, state)
+    np.testing.assert_allclose(a, [[0.5, -0.5]], atol=1e-7)
+    if name != "afc":
+        obs[:, OBS_X] = obs[:, OBS_XREF] + 1e-3  # 1 mm above the reference
+        a, _ = fb.predict(obs, state)
+        assert a[0, 0] < 0.5 - 1e-3
 
 
 def test_bumpless_transfer_keeps_carrying_the_load():

@@ -428,11 +428,22 @@ def test_the_relative_estimator_follows_a_stiffness_excess_in_proportion_to_k_re
 def test_on_a_constant_k_ref_both_estimators_apply_the_same_correction():
     # with k̂ constant, z = k̂ (X̂ − x_start) exactly (the trapezoid rule is exact), so the
     # regression on z is the one on X̂ scaled by k̂ in every moment, v₀ scaled by k̂² too: the
-    # fitted share is the fitted slope / k̂ and both give the same a_k, to float rounding
-    # (k̂ passes through the float32 observation: 1e-7 of it)
+    # fitted share is the fitted slope / k̂ and both give the same a_k, to float64 rounding
+    # over 4000 steps (measured 2e-16; starting z's mean at X̂ instead of z₀ = 0 leaves 3e-6)
     for ratio in (0.06, -0.04):
         np.testing.assert_allclose(_relative_stream(True, ratio, 0.0),
-                                   _relative_stream(False, ratio, 0.0), rtol=0, atol=1e-6)
+                                   _relative_stream(False, ratio, 0.0), rtol=0, atol=1e-12)
+    # k̂ = 0 (no stiffness design) gives no estimate, not NaN: z stays 0 and so does its
+    # variance, and the regulariser v₀ k̂² is 0 too
+    front = Frontend(None, ActionSpec(stiffness_adapt_s=3.0, stiffness_adapt_relative=True),
+                     0.01, 1.0)
+    state = new_state(1)
+    obs = np.zeros((1, 9), dtype=np.float32)
+    obs[0, 6], obs[0, 7] = 2.0, 0.5
+    for i in range(10):
+        obs[0, 0] = obs[0, 2] = 0.8 + 0.001 * i
+        assert front.estimate(np.array([0.1]), obs, state)[0] == 0.0
+    assert np.isfinite(state["est_slope"][0])
 
 
 def test_the_relative_estimator_forgets_a_correction_a_muscle_at_its_floor_cannot_make():
@@ -502,27 +513,34 @@ def test_without_the_option_the_estimator_is_the_documented_x_only_recursion():
     assert abs(ref["s"]) > 1.0  # the stream moves the estimate (the check can fail)
 
 
-def test_the_action_kernel_and_the_estimator_read_the_reference_velocity():
+@pytest.mark.parametrize("relative", [False, True])
+def test_the_action_kernel_and_the_estimator_read_the_reference_velocity(relative):
     # act_row (every policy's path: training wrapper, loaded, deployed) and estimate run one
     # estimator, and with the option on it reads V̂ (the reference), not the measured V: fed
-    # a stream whose V is noise, both keep the same record, bit for bit
+    # a stream whose V is noise, both keep the same record, bit for bit. With
+    # stiffness_adapt_relative both read the same path coordinate and the same measured
+    # pressures, here crossing the floor for a second in every three.
     dt, w = 0.01, 2 * np.pi / 3.0
     front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3, stiffness_adapt_s=3.0,
-                                      stiffness_adapt_velocity=True), dt, 1.0)
+                                      stiffness_adapt_velocity=True,
+                                      stiffness_adapt_relative=relative), dt, 1.0)
     acted, estimated = new_state(1), new_state(1)
     obs = np.zeros((1, 9), dtype=np.float32)
-    obs[0, 8] = 0.545
+    obs[0, 6] = 2.0
     rng = np.random.default_rng(0)
     for i in range(600):
         t = i * dt
         obs[0, 2], obs[0, 3] = 0.8 + 0.02 * np.sin(w * t), 0.02 * w * np.cos(w * t)
         obs[0, 0], obs[0, 1] = obs[0, 2] - 1e-3 * abs(np.sin(w * t - 0.6)), rng.normal(0, 0.05)
+        obs[0, 7] = 0.0 if (i // 100) % 3 == 2 else 0.5  # [bar] the flexor's pressure
+        obs[0, 8] = 0.545 * (1.0 + 0.3 * np.sin(w * t))  # k̂ [kN/m]
         a = rng.uniform(-1.0, 1.0, (1, 2)).astype(np.float32)
         front.act(a, obs, acted)
         front.estimate(a[:, 0], obs, estimated)
-    for field in ("est_v_ref_mps", "est_cov_N_mps", "est_cov_qv", "est_slope"):
+    for field in ("est_v_ref_mps", "est_cov_N_mps", "est_cov_qv", "est_slope", "est_path_N"):
         assert acted[field][0] == estimated[field][0], field
     assert acted["est_cov_N_mps"][0] != 0.0
+    assert (acted["est_path_N"][0] != 0.0) == relative
 
 
 def _default_config(**action_kwargs):

@@ -110,6 +110,12 @@ class _PlanPolicy:
         over the env's scale (1 where the env's scale is smaller)."""
         return min(AUTHORITY_BAR / self.cfg.residual_scale_bar, 1.0)
 
+    def _within_authority(self, actions: np.ndarray) -> np.ndarray:
+        """A policy's ``actions`` (env units) clipped to what this controller may command
+        (``action_limit``; NaN kept): a take-over continues the part of the held command it
+        can make, so its integrator does not start wound up past its own clip."""
+        return np.clip(actions, -self.action_limit, self.action_limit)
+
     @classmethod
     def stack_rows(cls, policies: list[_PlanPolicy]) -> _PlanPolicy:
         """:func:`stack`: one set of gains and task config, row i following policy i's plan."""
@@ -296,6 +302,7 @@ class PIDResidual(_PlanPolicy):
         gives the antagonistic part u = (a_e − a_f) / 2 of the held command, the derivative filter
         starts at the measured error rate; other rows keep ``state``. The common part of the
         command (a stiffness change) has no place in this controller and is dropped."""
+        held = self._within_authority(held)
         return self._hold(observation, state, rows, 0.5 * (held[:, 0] - held[:, 1])
                           * self.cfg.residual_scale_bar, self.ki_bar_per_m_s)
 
@@ -362,9 +369,11 @@ class AdaptiveFeedforward(_PlanPolicy):
         n = obs.shape[0]
         st = np.zeros((n, 4)) if state is None else np.array(state, dtype=float).reshape(n, 4)
         scale = self.cfg.residual_scale_bar
+        held = self._within_authority(held)
         theta = np.zeros((n, 3))
         theta[:, 0] = 0.5 * (held[:, 0] - held[:, 1]) * scale
         if history is not None:
+            history = self._within_authority(history)
             u = 0.5 * (history[:, 0] - history[:, 1]) * scale
             N = u.shape[-1]
             whole = np.isfinite(u).all(axis=-1)
@@ -622,7 +631,8 @@ class StiffnessFeedback(_PlanPolicy):
         gives the force correction that the held pressures (feedforward + residual) make, on the
         nominal model at the measured state, beyond m (dV̂/dt + g); other rows keep ``state``."""
         obs = np.asarray(observation, dtype=np.float64).reshape(len(rows), -1)
-        pressures = self._feedforward(obs) + held * self.cfg.residual_scale_bar * BAR
+        pressures = (self._feedforward(obs)
+                     + self._within_authority(held) * self.cfg.residual_scale_bar * BAR)
         with np.errstate(invalid="ignore"):
             c = affine_in_pressures(obs[:, OX], obs[:, OV], self.params)
             force = c.F0 + np.einsum("...j,...j->...", c.J[..., 0, :], pressures)

@@ -85,18 +85,22 @@ spans 409–821 N/m, a function of X̂. A plant whose muscles are not the model'
 softer by a share of it (rc on heldout_bladder leaves 6.0 % of stiffness error, with 0.007 %
 per mm of slope against X̂), and a constant Δk leaves a relative error that varies with X̂ as
 k̂ does. The estimator then regresses ΔF on the path coordinate z = ∫ k̂ dX̂ (summed from the
-episode's first observation by the trapezoid rule) in place of X̂: the force deficit of a
-plant ρ stiffer is ρ z, its slope against z is ρ, and â_k = −ρ / ``stiffness_rel``, so Δk =
-−ρ k̂ follows k̂. v₀ becomes v₀ k̂² and the clip ±``stiffness_rel``. With k̂ constant, z = k̂
-(X̂ − X̂₀) and the two estimators apply the same correction. While a muscle's measured pressure
-is at its floor (under ``ADAPT_FLOOR_BAR``) the pressures the map asks for are not realised,
-so the ΔF applied is not the force the regression assumes; learning on it winds up (on
-load_1kg_kmin, whose design holds the flexor at 0 bar over 15 % of the period, the estimate
-lowered the stiffness until the flexor stayed at 0 bar and ran to its clip). There the
-estimate decays to zero at the estimator's rate instead, and nothing else is updated. The
-estimate that follows k̂ moves the pressures along the motion, and on a plant that is not the
-model that moves the force too (CHANGELOG.md, issue 36: the stiffness error halves and the
-position error grows).
+episode's first observation by the trapezoid rule; k̂ is a function of X̂ on the paper's
+designs, so z returns to within 0.06 N of its 18-21 N swing each period, where a stiffness
+profile in time would let it drift and the low-passed mean follow) in place of X̂: the force
+deficit of a plant ρ stiffer is ρ z, its slope against z is ρ, and â_k = −ρ /
+``stiffness_rel``, so Δk = −ρ k̂ follows k̂. v₀ becomes v₀ k̂² and the clip ±``stiffness_rel``.
+With k̂ constant, z = k̂ (X̂ − X̂₀) and the two estimators apply the same correction. While a
+muscle's measured pressure is at its floor (under ``ADAPT_FLOOR_BAR``) the pressures the map
+asks for are not realised, so the ΔF applied is not the force the regression assumes; learning
+on it winds up (on load_1kg_kmin, whose design holds the flexor at 0 bar over 15 % of the
+period, the estimate lowered the stiffness until the flexor stayed at 0 bar and ran to its
+clip). There the estimate decays to zero at the estimator's error-weighted rate instead, and
+nothing else is updated. A pressure held at its upper limit, or by the regulator's slew limit,
+is not realised either; the rule covers the floor only, where the kmin design puts the flexor.
+The estimate that follows k̂ moves the pressures along the motion, and on a plant that is not
+the model that moves the force too (CHANGELOG.md, issue 36: the held-out stiffness error falls
+by up to two thirds and the position error grows).
 Off the training plants, an a_k learned from the error features can go the wrong way
 (CHANGELOG.md, 0.1.0, e2e9a73); the estimate needs no learning. It is a controller's
 computation from its own commands and the reference, like the features, never a plant
@@ -524,7 +528,8 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
     [m], V̂ = ``v_ref`` [m/s] (kept at the start, used with ``cfg.adapt_velocity`` only),
     tracking error ``e`` [m] and k̂ = ``k_ref`` [N/m], its record fields updated → â_k; then
     the force correction ``a_F`` applied this step, which the next update pairs with the next
-    X̂."""
+    X̂. ``p_min_bar``: the lower of the two measured pressures [bar], for
+    ``cfg.adapt_relative``'s floor rule (module docstring)."""
     if not st.est_started:
         st.est_force_N = 0.0
         st.est_cov_Fq = 0.0
@@ -562,8 +567,8 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
         st.est_cov_qv += al * (dq * dv - st.est_cov_qv)
         st.est_var_vv += al * (dv * dv - st.est_var_vv)
     a_k = 0.0
-    if span > 0.0:
-        v = st.est_var_q + v0
+    v = st.est_var_q + v0
+    if span > 0.0 and v > 0.0:  # v = 0: k̂ = 0 and no motion yet (relative), nothing to fit
         if cfg.adapt_velocity:  # q's coefficient of the regression on (q, V̂)
             vv, cqv = st.est_var_vv + ADAPT_VAR_V2, st.est_cov_qv
             fit = (st.est_cov_Fq * vv - cqv * st.est_cov_N_mps) / (v * vv - cqv * cqv)

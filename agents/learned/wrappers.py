@@ -6,10 +6,11 @@ coordinates and the stiffness estimator, their definitions and their reasons).
 alone: ``errors_only``); ``ForceStiffnessAction`` takes actions (a_F, a_k) in force–stiffness
 coordinates and gives the residual env their pressure correction, with the stiffness
 estimator's a_k if ``stiffness_adapt_s`` (regressed on X̂ and V̂ with
-``stiffness_adapt_velocity``). ``rate_penalty`` w subtracts w·|a_t − a_{t−1}|² from
-the reward (a_{−1} = 0 each episode), the action-rate term of legged-robot RL, against
-high-frequency corrections that a lagging regulator turns into a limit cycle; it shapes
-training only, so a trained policy runs without it.
+``stiffness_adapt_velocity``; a share of k̂ with ``stiffness_adapt_relative``).
+``rate_penalty`` w subtracts w·|a_t − a_{t−1}|² from the reward (a_{−1} = 0 each episode), the
+action-rate term of legged-robot RL, against high-frequency corrections that a lagging
+regulator turns into a limit cycle; it shapes training only, so a trained policy runs without
+it.
 
 Single-env wrappers are what an rl-zoo config names as ``env_wrapper``; the ``…Vector…`` ones wrap
 the native vector env (same-step autoreset). All of them call the front-end's row kernels on
