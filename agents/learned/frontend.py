@@ -149,6 +149,7 @@ import numpy as np
 from gymnasium import spaces
 
 from mpa_gym.model import fast
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task.contract import OBS_COS as OCOS
 from mpa_gym.task.contract import OBS_KREF as OK
@@ -160,8 +161,6 @@ from mpa_gym.task.contract import OBS_V as OV
 from mpa_gym.task.contract import OBS_VREF as OVR
 from mpa_gym.task.contract import OBS_X as OX
 from mpa_gym.task.contract import OBS_XREF as OXR
-
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 MAX_HARMONICS = 5
 MAX_DELAY_S = 1.0  # [s] the bound of the observed dead time and lag

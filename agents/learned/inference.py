@@ -34,9 +34,8 @@ from mpa_gym.agents.learned.frontend import (
     new_state,
     observe_row,
 )
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import DEFAULT_PARAMS, Params
-
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 # activation codes of the hidden layers (SB3's activation_fn)
 ACTIVATIONS = {"Tanh": 0, "ReLU": 1, "ELU": 2, "LeakyReLU": 3}

@@ -69,10 +69,10 @@ from scipy.sparse import lil_matrix
 from mpa_gym.agents.rig.rollout import read_log
 from mpa_gym.analysis.scenario import PLANT_RANGES, RANDOMIZABLE, Plant, Scenario, load_scenario
 from mpa_gym.model import fast
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_range
 from mpa_gym.task.config import TaskConfig
 
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 MECH = ("mass_kg", "gamma_Ns_per_m", "C1_Pa", "C2_Pa")  # fitted plant keys, mechanics (scaled)
 # fitted plant keys, mechanics, the fidelity effects (0 for the paper's plant): (key, scale, upper
 # bound); their nominal value is 0, so they are scaled by a typical size instead

@@ -26,6 +26,7 @@ from mpa_gym.analysis.scenario import (
     check_plant_value,
 )
 from mpa_gym.model import fast
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import BAR, DEFAULT_PARAMS, Params, check_keys
 from mpa_gym.task.config import END_STOPS_M, TaskConfig
 from mpa_gym.task.contract import (
@@ -63,7 +64,6 @@ from mpa_gym.task.kernels import (
 )
 from mpa_gym.task.plan import TaskPlan
 
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 @numba.njit(**JIT)
 def _observe(obs, i, X, V, Pe, Pf, j, noise, enc, tab, spec):

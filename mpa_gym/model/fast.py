@@ -15,6 +15,7 @@ import math
 import numba
 import numpy as np
 
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import Params
 
 FIELDS = ("C1", "C2", "D0", "b", "n", "gamma", "L0", "Vr", "Lo", "Lu", "L1", "L2", "r", "m", "g",
@@ -30,7 +31,6 @@ NC = len(FIELDS)
  B2, KK, L02_, FOURPIN2, LOLU, LO2LU2, L1SQL2SQ, L1L2,
  INV_L02, INV_K, INV_L02K, INV_4PIN2, INV_2LOLU, INV_LOLU, INV_M,
  MU_B, INV_VB, F_C, C_S, INV_VS, LAG, SLEW) = range(NC)
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 def pack(p: Params) -> np.ndarray:

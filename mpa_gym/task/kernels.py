@@ -12,6 +12,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from mpa_gym.model.jit import JIT
 from mpa_gym.model.params import BAR
 from mpa_gym.task.contract import (
     O_K,
@@ -28,7 +29,6 @@ from mpa_gym.task.contract import (
 )
 
 N_STATE = len(STATE)
-JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 # The scalar settings vector the compiled step reads, packed by name (``pack_settings``).
 SETTINGS = ("residual", "residual_scale_Pa", "p_max_Pa", "max_delta_Pa", "quantum_Pa", "dt_s",
