@@ -550,24 +550,25 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
     else:
         q, v0, span = x_ref, ADAPT_VAR_M2, cfg.stiffness_rel * abs(k_ref)
     al = cfg.dt_s / cfg.stiffness_adapt_s / (1.0 + (e / ADAPT_ERROR_M) ** 2)
-    if cfg.adapt_relative and p_min_bar < ADAPT_FLOOR_BAR:
-        st.est_slope -= al * st.est_slope
-        st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
-        return min(max(-st.est_slope / cfg.stiffness_rel, -1.0), 1.0)
-    st.est_q_mean += al * (q - st.est_q_mean)
-    st.est_force_N += al * (st.est_applied_N - st.est_force_N)
-    dq, dF = q - st.est_q_mean, st.est_applied_N - st.est_force_N
-    st.est_cov_Fq += al * (dF * dq - st.est_cov_Fq)
-    st.est_var_q += al * (dq * dq - st.est_var_q)
-    if cfg.adapt_velocity:
-        st.est_v_ref_mps += al * (v_ref - st.est_v_ref_mps)
-        dv = v_ref - st.est_v_ref_mps
-        st.est_cov_N_mps += al * (dF * dv - st.est_cov_N_mps)
-        st.est_cov_qv += al * (dq * dv - st.est_cov_qv)
-        st.est_var_vv += al * (dv * dv - st.est_var_vv)
+    at_floor = cfg.adapt_relative and p_min_bar < ADAPT_FLOOR_BAR  # nothing learned there
+    if not at_floor:
+        st.est_q_mean += al * (q - st.est_q_mean)
+        st.est_force_N += al * (st.est_applied_N - st.est_force_N)
+        dq, dF = q - st.est_q_mean, st.est_applied_N - st.est_force_N
+        st.est_cov_Fq += al * (dF * dq - st.est_cov_Fq)
+        st.est_var_q += al * (dq * dq - st.est_var_q)
+        if cfg.adapt_velocity:
+            st.est_v_ref_mps += al * (v_ref - st.est_v_ref_mps)
+            dv = v_ref - st.est_v_ref_mps
+            st.est_cov_N_mps += al * (dF * dv - st.est_cov_N_mps)
+            st.est_cov_qv += al * (dq * dv - st.est_cov_qv)
+            st.est_var_vv += al * (dv * dv - st.est_var_vv)
     a_k = 0.0
     v = st.est_var_q + v0
-    if span > 0.0 and v > 0.0:  # v = 0: k̂ = 0 and no motion yet (relative), nothing to fit
+    if at_floor:  # the estimate decays to zero (span = stiffness_rel > 0 here)
+        st.est_slope -= al * st.est_slope
+        a_k = min(max(-st.est_slope / span, -1.0), 1.0)
+    elif span > 0.0 and v > 0.0:  # v = 0: k̂ = 0 and no motion yet (relative), nothing to fit
         if cfg.adapt_velocity:  # q's coefficient of the regression on (q, V̂)
             vv, cqv = st.est_var_vv + ADAPT_VAR_V2, st.est_cov_qv
             fit = (st.est_cov_Fq * vv - cqv * st.est_cov_N_mps) / (v * vv - cqv * cqv)

@@ -190,7 +190,7 @@ class DeployedPolicy(Episodic):
             norm = (nz.obs_rms.mean, nz.obs_rms.var, float(nz.epsilon), float(nz.clip_obs))
         space = policy.model.action_space
         return cls(layers, activation, obs_dim, policy.features, norm, policy.dt,
-                   policy.frontend.action, policy.residual_scale_bar, space.low, space.high,
+                   policy.action, policy.residual_scale_bar, space.low, space.high,
                    params, policy.check)
 
     def reset(self) -> None:
