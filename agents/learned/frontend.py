@@ -71,23 +71,26 @@ more, clipped to ±``stiffness_rel`` k̂, and answers â_k = −slope / (``stiff
 Each update's weight is w = 1 / (1 + (e / 1 mm)²), so a start's or a kick's transient barely
 moves the regression; the rest of the update's rate, (1 − w) dt / τ, returns the estimate
 towards zero, the design's own stiffness. A leg that does not track says nothing about its
-stiffness, and a correction kept while it does not can be what stops it tracking: a load's force
-correction settling after the start (a step D of ΔF projects onto the reference by about
-D A / ω) read as a stiffness excess of 50-80 N/m on the nominal muscles with 1.6 kg (the true
+stiffness, and a correction held while it does not can be what stops it tracking: a load's force
+correction settling after the start correlates with X̂ until the low-passed mean of ΔF catches
+up, and read as a stiffness excess of 50-80 N/m on the nominal muscles with 1.6 kg (the true
 slope is −Δm ω², −7 N/m); under 40 ms of regulator dead time the stiffness it took off tipped
-the loop into a 4 Hz limit cycle, whose error then held the weights down, so a frozen estimate
-stayed (40 N/m after 30 s). Returned towards zero, it lets the loop settle and then learns the
-slope again (CHANGELOG.md, issue 36). With ``stiffness_adapt_velocity`` the slope is X̂'s
-coefficient in a regression of ΔF on X̂ and V̂ together (their low-passed covariances, a 2×2
-solve, V̂'s variance regularised by v₀ᵥ). Over whole periods X̂ and V̂ are orthogonal, but the
-weights are not uniform over a period where the error is not (friction and slew make it largest
-at the reversals), and then the part of ΔF that follows V̂ (the friction, damping and delay
-corrections) leaks into X̂'s slope: on ``configs/rigs/offnominal.yaml`` (C1 −10 %) an X̂-only
-estimate settled near 0 N/m where about −40 N/m corrects the stiffness, and left an
-8 % stiffness error (CHANGELOG.md, issue 36). An update pairs X̂ with the ΔF applied one control
-step earlier (this step's is not known until â_k is): a lag dt that scales the slope by
-cos(ω dt), 0.9998 at the 3 s period, and turns a part c·V̂ of ΔF into an X̂ slope of c·ω²·dt
-(4.4 N/m for c = 100 N s/m).
+the loop into a 4 Hz limit cycle whose error held the weights down, and the frozen estimate
+stayed (CHANGELOG.md, issue 36). The price is a shrink where the leg tracks with a steady error:
+the settled estimate is the fit times the mean weight (0.70 of it under a 1 mm·|sin φ| error,
+0.99 before; the held-out plants, tracked within 0.03 mm, do not see it). Only the estimate
+returns; the regression's statistics keep what they learned at the low weight, so a false read
+can come back for a few seconds once the leg tracks again, until new updates replace it. With
+``stiffness_adapt_velocity`` the slope is X̂'s coefficient in a regression of ΔF on X̂ and V̂
+together (their low-passed covariances, a 2×2 solve, V̂'s variance regularised by v₀ᵥ). Over
+whole periods X̂ and V̂ are orthogonal, but the weights are not uniform over a period where the
+error is not (friction and slew make it largest at the reversals), and then the part of ΔF that
+follows V̂ (the friction, damping and delay corrections) leaks into X̂'s slope: on
+``configs/rigs/offnominal.yaml`` (C1 −10 %) an X̂-only estimate settled near 0 N/m where about
+−40 N/m corrects the stiffness, and left an 8 % stiffness error (CHANGELOG.md, issue 36). An
+update pairs X̂ with the ΔF applied one control step earlier (this step's is not known until â_k
+is): a lag dt that scales the slope by cos(ω dt), 0.9998 at the 3 s period, and turns a part
+c·V̂ of ΔF into an X̂ slope of c·ω²·dt (4.4 N/m for c = 100 N s/m).
 ``stiffness_adapt_relative`` fits the excess as a share ρ of k̂, k − k̂ = ρ k̂, instead of a
 number of N/m. The designed k̂ is not constant along the motion: on the 20 mm, 3 s reference it
 spans 409–821 N/m, a function of X̂. A plant whose muscles are not the model's is stiffer or
