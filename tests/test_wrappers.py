@@ -461,11 +461,14 @@ def test_the_relative_estimator_forgets_a_correction_a_muscle_at_its_floor_canno
     # a muscle whose measured pressure is at its floor (under ADAPT_FLOOR_BAR) cannot realise
     # the pressures the map asks: the ΔF applied is not the ΔF the regression assumes, and
     # learning on it winds the estimate up (load_1kg_kmin, whose flexor the kmin design holds
-    # at 0 bar over 15 % of the period, ran to the clip). There the estimate decays to zero at
-    # the estimator's rate instead: exactly s (1 − dt/τ)^n over n steps at zero error; above
-    # the floor the same stream keeps it (the check can fail).
+    # at 0 bar over 15 % of the period, ran to the clip). There nothing is learned and the
+    # whole rate returns the estimate to zero: exactly s (1 − dt/τ)^n over n steps, at zero
+    # error and at 3 mm alike (a rate weighted by the error, 1/(1 + 3²), would decay a tenth
+    # as fast: the check can fail); above the floor the same stream keeps it (the check can
+    # fail).
     dt, tau, w = 0.01, 3.0, 2 * np.pi / 3.0
-    for p_f, decays in ((0.0, True), (ADAPT_FLOOR_BAR + 0.01, False)):
+    for p_f, decays, err in ((0.0, True, 0.0), (0.0, True, 3e-3),
+                             (ADAPT_FLOOR_BAR + 0.01, False, 0.0)):
         front = Frontend(None, ActionSpec(force_N=20.0, stiffness_rel=0.3, stiffness_adapt_s=tau,
                                           stiffness_adapt_relative=True), dt, 1.0)
         state = new_state(1)
@@ -477,6 +480,8 @@ def test_the_relative_estimator_forgets_a_correction_a_muscle_at_its_floor_canno
             if i == 3000:
                 obs[0, 7] = p_f
                 settled = state["est_slope"][0]
+            if i >= 3000:  # the error from the floor on
+                obs[0, 0] = obs[0, 2] - err
             dF = 0.06 * 545.0 * 0.02 * s
             a_k = front.estimate(np.array([dF / 20.0]), obs, state)[0]
         assert settled == pytest.approx(0.06, rel=0.1)

@@ -107,8 +107,9 @@ muscle's measured pressure is at its floor (under ``ADAPT_FLOOR_BAR``) the press
 asks for are not realised, so the ΔF applied is not the force the regression assumes; learning
 on it winds up (on load_1kg_kmin, whose design holds the flexor at 0 bar over 15 % of the
 period, the estimate lowered the stiffness until the flexor stayed at 0 bar and ran to its
-clip). There the estimate decays to zero at the estimator's error-weighted rate instead, and
-nothing else is updated. A pressure held at its upper limit, or by the regulator's slew limit,
+clip). There nothing is learned, so the whole of each step's rate dt / τ returns the estimate
+to zero (whatever the error: the rule above with a weight of zero), and nothing else is
+updated. A pressure held at its upper limit, or by the regulator's slew limit,
 is not realised either; the rule covers the floor only, where the kmin design puts the flexor.
 The estimate that follows k̂ moves the pressures along the motion, and on a plant that is not
 the model that moves the force too (CHANGELOG.md, issue 36: the held-out stiffness error falls
@@ -561,7 +562,8 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
         q, v0, span = st.est_path_N, ADAPT_VAR_M2 * k_ref * k_ref, cfg.stiffness_rel
     else:
         q, v0, span = x_ref, ADAPT_VAR_M2, cfg.stiffness_rel * abs(k_ref)
-    al = cfg.dt_s / cfg.stiffness_adapt_s / (1.0 + (e / ADAPT_ERROR_M) ** 2)
+    rate = cfg.dt_s / cfg.stiffness_adapt_s
+    al = rate / (1.0 + (e / ADAPT_ERROR_M) ** 2)
     at_floor = cfg.adapt_relative and p_min_bar < ADAPT_FLOOR_BAR  # nothing learned there
     if not at_floor:
         st.est_q_mean += al * (q - st.est_q_mean)
@@ -577,8 +579,8 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
             st.est_var_vv += al * (dv * dv - st.est_var_vv)
     a_k = 0.0
     v = st.est_var_q + v0
-    if at_floor:  # the estimate decays to zero (span = stiffness_rel > 0 here)
-        st.est_slope -= al * st.est_slope
+    if at_floor:  # nothing learned: the whole rate returns it to zero (span > 0 here)
+        st.est_slope -= rate * st.est_slope
         a_k = min(max(-st.est_slope / span, -1.0), 1.0)
     elif span > 0.0 and v > 0.0:  # v = 0: k̂ = 0 and no motion yet (relative), nothing to fit
         if cfg.adapt_velocity:  # q's coefficient of the regression on (q, V̂)
@@ -589,8 +591,7 @@ def estimate_row(st, x_ref, v_ref, e, k_ref, a_F, p_min_bar, cfg):
         slope = min(max(fit, -span), span)
         # the rest of the step's rate, what the weight kept from learning, returns the
         # estimate towards zero (module docstring: the leg not tracking)
-        lost = cfg.dt_s / cfg.stiffness_adapt_s - al
-        st.est_slope += al * (slope - st.est_slope) - lost * st.est_slope
+        st.est_slope += al * (slope - st.est_slope) - (rate - al) * st.est_slope
         a_k = min(max(-st.est_slope / span, -1.0), 1.0)
     st.est_applied_N = min(max(a_F, -1.0), 1.0) * cfg.force_N
     return a_k
