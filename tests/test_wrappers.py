@@ -4,6 +4,8 @@ the nominal model's pressure Jacobian)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -12,9 +14,9 @@ import yaml
 import mpa_gym  # noqa: F401  (registers the env ids)
 from mpa_gym.agents.learned.config import ConfigError, parse_config
 from mpa_gym.agents.learned.frontend import (
-    ADAPT_ERROR_M,
     ADAPT_FLOOR_BAR,
     ADAPT_VAR_M2,
+    HARMONIC_ERROR_M,
     HARMONIC_FIRST,
     HARMONIC_GAIN,
     HARMONIC_LAST,
@@ -805,7 +807,7 @@ def _harmonic_reference(raw, dt):
     for row in raw.astype(np.float64):
         e, s1, c1 = row[2] - row[0], row[4], row[5]
         env_m = max(abs(e), env_m * (1.0 - dt / HARMONIC_RELEASE_S))
-        w = dt * e / (1.0 + (env_m / ADAPT_ERROR_M) ** 2)
+        w = dt * e / (1.0 + (env_m / HARMONIC_ERROR_M) ** 2)
         phi = np.arctan2(s1, c1)
         out = 0.0
         for j, h in enumerate(range(HARMONIC_FIRST, HARMONIC_LAST + 1)):
@@ -874,50 +876,101 @@ def test_harmonic_force_correction_integrals_stop_at_their_bound():
 
 
 def test_harmonic_force_correction_barely_feeds_a_first_harmonic_error_to_the_others():
-    # weighted by the error itself (the stiffness estimator's weight), w e = e / (1 + (e /
-    # 1 mm)²) has a third harmonic: a millimetre of first-harmonic error charges the third
-    # harmonic's integrals at over a tenth of the rate of a pure 0.1 mm third harmonic. The
-    # update's weight follows the error's envelope instead; that still falls by 14 % between
-    # two peaks (1.5 s of a 10 s release), so w varies by about as much within a period and
-    # the leak is that share of the other's: under a quarter of it
+    # weighted by the error itself (as the stiffness estimator weights), w e = e / (1 + (e /
+    # E)²), E = HARMONIC_ERROR_M, has a third harmonic: a first-harmonic error of amplitude E
+    # charges the third harmonic's integrals at over a tenth of the rate of a pure third
+    # harmonic a tenth its size. The update's weight follows the error's envelope instead;
+    # that still falls by 14 % between two peaks (1.5 s of a 10 s release), so w varies by
+    # about as much within a period and the leak is a share of the other's: 0.14 of it
+    # (measured), under a quarter asserted
     dt = 0.01
     phi = 2 * np.pi * np.arange(3000) * dt / 3.0  # ten periods
-    e = 1e-3 * np.sin(phi)
+    e = HARMONIC_ERROR_M * np.sin(phi)
     _, J = _harmonic_reference(_leg_obs(e, phi), dt)
     own = np.abs(J[-1]).max()
-    w_e = dt * e / (1.0 + (e / ADAPT_ERROR_M) ** 2)
+    w_e = dt * e / (1.0 + (e / HARMONIC_ERROR_M) ** 2)
     instantaneous = abs(np.sum(w_e * np.sin(3 * phi)))
-    pure = np.sum(dt * 1e-4 * np.sin(3 * phi) ** 2)  # the charge of a 0.1 mm third harmonic
+    # the charge of a third harmonic of a tenth the amplitude
+    pure = np.sum(dt * 0.1 * HARMONIC_ERROR_M * np.sin(3 * phi) ** 2)
     assert instantaneous > 0.1 * pure
     assert own < 0.25 * instantaneous, (own, instantaneous)
 
 
-def test_harmonic_force_correction_removes_the_harmonics_a_feedback_loop_leaves():
-    # closed loop on a plant the policy never saw: a fixed linear "network" (PID on the
-    # features e, ė, I_0: a_F = (600 e + 30 ė + 3000 I_0) / force_N) leaves heldout_bladder's
-    # muscle nonlinearity at 2ω and 3ω (amplitudes 0.044 and 0.010 mm); with the correction at
-    # its default bound both fall, measured 21x and 5x over the last three periods of 30 s: at
-    # least 5x and 2.5x asserted (half the margin of the 2nd, the 3rd's time constant is
-    # longer at its lower dynamic stiffness)
+def _fixed_loop_errors(sc, bound):
+    """The tracking errors X̂ − X [m] of 30 s of a fixed linear "network" (PID on the features
+    e, ė, I_0: a_F = (600 e + 30 ė + 3000 I_0) / force_N, a_k = 0) on scenario ``sc``, with
+    the harmonic force correction bounded to ``bound`` [N] (None: off)."""
     from mpa_gym.agents.learned.inference import DeployedPolicy
 
-    sc = load_scenario("heldout_bladder")
     features, force_N, dt = FeatureSpec(errors_only=True, harmonics=1), 30.0, 0.01
     net = np.zeros((2, 5))
     net[0, :3] = np.array([600.0, 30.0, 3000.0]) / force_N
-    amp = {}
-    for bound in (None, 1.0):
-        policy = DeployedPolicy([(net, np.zeros(2))], "Tanh", 9, features, None, dt,
-                                ActionSpec(force_N=force_N, harmonic_force_N=bound), 2.0)
-        env = gym.make("MPALegResidual-v0", scenario=sc, task={"residual_scale_bar": 2.0})
-        obs, _ = env.reset(seed=1)
-        err = []
-        for k in range(int(30.0 / dt)):
-            obs, _, terminated, _, _ = env.step(policy.act(obs, k == 0))
-            err.append(obs[2] - obs[0])
-            assert not terminated
-        n = round(3 * sc.reference.period / dt)
-        spectrum = np.abs(np.fft.rfft(np.array(err[-n:]))) / n * 2
-        amp[bound] = spectrum[[6, 9]]  # 2nd and 3rd harmonics of three periods
+    policy = DeployedPolicy([(net, np.zeros(2))], "Tanh", 9, features, None, dt,
+                            ActionSpec(force_N=force_N, harmonic_force_N=bound), 2.0)
+    env = gym.make("MPALegResidual-v0", scenario=sc, task={"residual_scale_bar": 2.0})
+    obs, _ = env.reset(seed=1)
+    err = []
+    for k in range(int(30.0 / dt)):
+        obs, _, terminated, _, _ = env.step(policy.act(obs, k == 0))
+        err.append(obs[2] - obs[0])
+        assert not terminated
+    return np.array(err)
+
+
+def _last_periods(err, sc, dt=0.01):
+    """The last three reference periods of ``err``, sampled every ``dt``."""
+    return err[-round(3 * sc.reference.period / dt):]
+
+
+def _harmonic_amplitudes(err, sc, harmonics):
+    """[m] amplitudes of the reference's ``harmonics`` in the last three periods of ``err``."""
+    tail = _last_periods(err, sc)
+    return (np.abs(np.fft.rfft(tail)) / tail.size * 2)[[3 * h for h in harmonics]]
+
+
+def test_harmonic_force_correction_removes_the_harmonics_a_feedback_loop_leaves():
+    # closed loop on a plant the policy never saw: a fixed linear "network"
+    # (_fixed_loop_errors) leaves heldout_bladder's muscle nonlinearity at 2ω and 3ω
+    # (amplitudes 0.044 and 0.010 mm); with the correction at a bound of 1 N both fall,
+    # measured 61x and 13x over the last three periods of 30 s (21x and 5x with the envelope
+    # weight's earlier 1 mm square): at least 5x and 2.5x asserted, the bounds set then (the
+    # 3rd's time constant is longer at its lower dynamic stiffness)
+    sc = load_scenario("heldout_bladder")
+    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), sc, (2, 3))
+           for bound in (None, 1.0)}
     assert amp[None][0] > 3e-5 and amp[None][1] > 5e-6  # there is something to remove
     assert amp[1.0][0] < amp[None][0] / 5 and amp[1.0][1] < amp[None][1] / 2.5, amp
+
+
+def test_harmonic_force_correction_learns_a_rigs_friction_error_within_an_episode():
+    # closed loop on a rig unlike the model (configs/rigs/offnominal.yaml: braid and slider
+    # friction, 20 bar/s slew, 20 ms dead time + 30 ms lag, +0.6 kg, C1 -10 %), the fixed
+    # linear "network" of the test above: the friction leaves 1.1 mm at 3ω (measured), a
+    # steady periodic error, the kind this correction is for. This loop also leaves 3 mm at
+    # the first harmonic (a trained policy tracks this rig within 0.5 mm), so the envelope
+    # sits at 4-6 mm (w ≈ 0.3 at the weight's 3 mm scale): the 3rd harmonic falls to 0.10 mm
+    # over the 30 s rollout (11x, measured); at the weight's earlier 1 mm scale (w ≈ 0.04) to
+    # 0.82 mm (1.3x). At least 4x asserted; the first harmonic, the feedback's, is left to the
+    # network
+    sc = load_scenario(str(Path(__file__).resolve().parents[1] / "configs" / "rigs"
+                           / "offnominal.yaml"))
+    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), sc, (1, 3))
+           for bound in (None, 1.0)}
+    assert amp[None][0] > HARMONIC_ERROR_M / 2  # the envelope is over the weight's scale
+    assert amp[None][1] > 5e-4  # the friction's 3rd harmonic: something to remove
+    assert amp[1.0][1] < amp[None][1] / 4, amp
+
+
+def test_harmonic_force_correction_after_a_kick():
+    # the price of the weight's 3 mm scale: the paper's impulse scenario (20 N for 50 ms at
+    # 9 s, the nominal plant), the fixed "network" of the tests above. Without the correction
+    # the loop tracks the last three periods (12-21 s after the kick) within 0.001 mm RMS. The
+    # kick's few millimetres charge the integrals nearly as if unweighted, and what they hold
+    # then adds 0.018 mm (measured; unweighted 0.0195, at the earlier 1 mm scale 0.008, with
+    # a 4th power at 3 mm 0.010). Under 0.025 mm asserted: a correction that charged more on
+    # a kick, or took longer to discharge, would show here
+    sc = load_scenario("impulse")
+    rms = {bound: np.sqrt(np.mean(np.square(_last_periods(_fixed_loop_errors(sc, bound), sc))))
+           for bound in (None, 1.0)}
+    assert rms[None] < 2e-6, rms  # the loop itself has settled
+    assert rms[1.0] < 2.5e-5, rms

@@ -126,7 +126,7 @@ at the reference's 2nd and 3rd harmonics (``HARMONIC_FIRST`` … ``HARMONIC_LAST
 repetitive controller's internal model where the policy's own features stop (its harmonic
 pair is the first harmonic's). Each step it integrates
 
-    J_sh += w e sin(hφ) dt,   J_ch += w e cos(hφ) dt,   w = 1 / (1 + (ê / 1 mm)²),
+    J_sh += w e sin(hφ) dt,   J_ch += w e cos(hφ) dt,   w = 1 / (1 + (ê / 3 mm)²),
 
 each clipped to ±``HARMONIC_LIMIT_M_S``, and adds ΔF_h = g Σ_h (J_sh sin hφ + J_ch cos hφ),
 clipped to ±``harmonic_force_N``, with g = ``HARMONIC_GAIN``. For an error e = A sin(hφ),
@@ -137,18 +137,26 @@ no phase lead: it converges where the loop beneath keeps its phase at 2ω and 3�
 of a spring's (70 ms of regulator delay costs 0.44 rad at 3ω). The trained policies' loops
 do (CHANGELOG.md); a loop beneath with a resonance near these harmonics may not, as for rc.
 ê is the envelope of |e| (it follows a rise at once and falls with ``HARMONIC_RELEASE_S``):
-a start's or a kick's transient barely charges the integrals. The estimator's weight, of e
-itself, would not do here: w e is then a saturating function of e, and a millimetre of
-first-harmonic error feeds the third harmonic's integrals through it (ff alone on
-heldout_bladder: 0.17 mm of third-harmonic error from 0.02). ê changes little over a period
-(it falls by 14 % between two peaks), so w e stays nearly linear in e: the leak is about a
-seventh of the e-weighted one's (tests/test_wrappers.py). On the held-out plants, the error
-the policy leaves is at these harmonics (heldout_a: 0.035 mm of 0.045 at the 2nd, 0.009 at
-the 3rd), which a first-harmonic pair cannot hold; features for them (``harmonics: 2`` or 3) let
-the network learn the same correction but cost the paper's transients and the friction cells
-(CHANGELOG.md, issue 36). Like the estimator, it is a controller's computation from its own
-measurements and the reference, and runs in training, in the loaded policy and in the compiled
-rig path alike; the estimator pairs X̂ with the whole ΔF applied, this correction included.
+a start's or a kick's transient of 5-30 mm charges the integrals at w = 0.26-0.01. On a rig,
+friction and the regulator's slew leave a steady periodic error with peaks of 1.5-2 mm at the
+reversals (``configs/rigs/offnominal.yaml``), the error this correction is for, and the weight's
+scale ``HARMONIC_ERROR_M`` = 3 mm lets it learn that at w = 0.7-0.8. At the estimator's 1 mm
+(w = 0.2 at 2 mm) it learned there at a fifth of the rate and was still rising after 30 s. The
+price is the kick of a few millimetres the paper's impulse scenario gives, which charges the
+integrals nearly as if unweighted; a 4th power in place of the square (w = 0.84 at 2 mm, 0.11 at
+5 mm) halved that charge, but its networks held fewer delayed plants (CHANGELOG.md, issue 36).
+The estimator's weight, of e itself, would not do here: w e is then a saturating function of e,
+and a first-harmonic error of the weight's scale feeds the third harmonic's integrals through
+it (ff alone on heldout_bladder at 1 mm: 0.17 mm of third-harmonic error from 0.02). ê changes
+little over a period (it falls by 14 % between two peaks), so w e stays nearly linear in e:
+the leak is about a seventh of the e-weighted one's (tests/test_wrappers.py). On the held-out
+plants, the error the policy leaves is at these harmonics (heldout_a: 0.035 mm of 0.045 at the
+2nd, 0.009 at the 3rd), which a first-harmonic pair cannot hold; features for them
+(``harmonics: 2`` or 3) let the network learn the same correction but cost the paper's
+transients and the friction cells (CHANGELOG.md, issue 36). Like the estimator, it is a
+controller's computation from its own measurements and the reference, and runs in training, in
+the loaded policy and in the compiled rig path alike; the estimator pairs X̂ with the whole ΔF
+applied, this correction included.
 """
 
 from __future__ import annotations
@@ -264,6 +272,10 @@ HARMONIC_GAIN = 500.0  # [N/(m s)] g: a time constant of ~2 s on the nominal leg
 HARMONIC_LIMIT_M_S = 0.02
 HARMONIC_RELEASE_S = 10.0  # [s] release time of the error's envelope ê: over the half period
 #                            between two peaks of a steady error (1.5 s) ê falls by 14 %
+HARMONIC_ERROR_M = 3e-3  # [m] envelope at which an update's weight halves: a start's or a
+#                          kick's transient (5-30 mm) charges the integrals at 0.26-0.01 of the
+#                          full rate, a rig's steady periodic error (friction and slew at the
+#                          reversals: peaks of 1.5-2 mm on configs/rigs/offnominal.yaml) at 0.7-0.8
 HARMONIC_MAX_N = 30.0  # [N] largest harmonic_force_N: the default config's force_N
 
 # The stiffness estimator (ActionSpec.stiffness_adapt_s; module docs)
@@ -603,7 +615,7 @@ def harmonic_row(st, s1, c1, e, cfg):
     (sin φ, cos φ) = (``s1``, ``c1``) and tracking error ``e`` [m]: its integrals in ``st``
     updated → ΔF_h [N]. The basis sin hφ, cos hφ by the features' recurrence."""
     st.harm_env_m = max(abs(e), st.harm_env_m * (1.0 - cfg.dt_s / HARMONIC_RELEASE_S))
-    w = cfg.dt_s * e / (1.0 + (st.harm_env_m / ADAPT_ERROR_M) ** 2)
+    w = cfg.dt_s * e / (1.0 + (st.harm_env_m / HARMONIC_ERROR_M) ** 2)
     zr, zi = 1.0, 0.0
     out, j = 0.0, 0
     for h in range(1, HARMONIC_LAST + 1):
