@@ -37,6 +37,7 @@ from mpa_gym.agents.learned.wrappers import (
     TrackingErrorVectorObservation,
 )
 from mpa_gym.analysis.scenario import load_scenario
+from mpa_gym.analysis.simulate import whole_periods
 from mpa_gym.design import affine_in_pressures
 from mpa_gym.model.params import BAR
 from mpa_gym.task.contract import OBS_KREF_SCALE
@@ -899,7 +900,8 @@ def test_harmonic_force_correction_barely_feeds_a_first_harmonic_error_to_the_ot
 def _fixed_loop_errors(sc, bound):
     """The tracking errors X̂ − X [m] of 30 s of a fixed linear "network" (PID on the features
     e, ė, I_0: a_F = (600 e + 30 ė + 3000 I_0) / force_N, a_k = 0) on scenario ``sc``, with
-    the harmonic force correction bounded to ``bound`` [N] (None: off)."""
+    the harmonic force correction bounded to ``bound`` [N] (None: off): the reports' last
+    three periods of them (``whole_periods``)."""
     from mpa_gym.agents.learned.inference import DeployedPolicy
 
     features, force_N, dt = FeatureSpec(errors_only=True, harmonics=1), 30.0, 0.01
@@ -914,17 +916,11 @@ def _fixed_loop_errors(sc, bound):
         obs, _, terminated, _, _ = env.step(policy.act(obs, k == 0))
         err.append(obs[2] - obs[0])
         assert not terminated
-    return np.array(err)
+    return np.array(err)[whole_periods(dt * np.arange(1, len(err) + 1), sc.reference.period)]
 
 
-def _last_periods(err, sc, dt=0.01):
-    """The last three reference periods of ``err``, sampled every ``dt``."""
-    return err[-round(3 * sc.reference.period / dt):]
-
-
-def _harmonic_amplitudes(err, sc, harmonics):
-    """[m] amplitudes of the reference's ``harmonics`` in the last three periods of ``err``."""
-    tail = _last_periods(err, sc)
+def _harmonic_amplitudes(tail, harmonics):
+    """[m] amplitudes of the reference's ``harmonics`` in ``tail``, three whole periods."""
     return (np.abs(np.fft.rfft(tail)) / tail.size * 2)[[3 * h for h in harmonics]]
 
 
@@ -936,7 +932,7 @@ def test_harmonic_force_correction_removes_the_harmonics_a_feedback_loop_leaves(
     # weight's earlier 1 mm square): at least 5x and 2.5x asserted, the bounds set then (the
     # 3rd's time constant is longer at its lower dynamic stiffness)
     sc = load_scenario("heldout_bladder")
-    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), sc, (2, 3))
+    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), (2, 3))
            for bound in (None, 1.0)}
     assert amp[None][0] > 3e-5 and amp[None][1] > 5e-6  # there is something to remove
     assert amp[1.0][0] < amp[None][0] / 5 and amp[1.0][1] < amp[None][1] / 2.5, amp
@@ -954,7 +950,7 @@ def test_harmonic_force_correction_learns_a_rigs_friction_error_within_an_episod
     # network
     sc = load_scenario(str(Path(__file__).resolve().parents[1] / "configs" / "rigs"
                            / "offnominal.yaml"))
-    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), sc, (1, 3))
+    amp = {bound: _harmonic_amplitudes(_fixed_loop_errors(sc, bound), (1, 3))
            for bound in (None, 1.0)}
     assert amp[None][0] > HARMONIC_ERROR_M / 2  # the envelope is over the weight's scale
     assert amp[None][1] > 5e-4  # the friction's 3rd harmonic: something to remove
@@ -970,7 +966,7 @@ def test_harmonic_force_correction_after_a_kick():
     # a 4th power at 3 mm 0.010). Under 0.025 mm asserted: a correction that charged more on
     # a kick, or took longer to discharge, would show here
     sc = load_scenario("impulse")
-    rms = {bound: np.sqrt(np.mean(np.square(_last_periods(_fixed_loop_errors(sc, bound), sc))))
+    rms = {bound: np.sqrt(np.mean(np.square(_fixed_loop_errors(sc, bound))))
            for bound in (None, 1.0)}
     assert rms[None] < 2e-6, rms  # the loop itself has settled
     assert rms[1.0] < 2.5e-5, rms
